@@ -83,8 +83,11 @@ def quat_from_rotation(R: ArrayLike) -> Array:
     def root(x: Array) -> Array:
         return 0.5 * jnp.sqrt(jnp.maximum(x, 1e-12))
 
-    d21, d02, d10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
-    s01, s02, s12 = R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1]
+    def pair(i: int, j: int, sign: float) -> Array:
+        return R[..., i, j] + sign * R[..., j, i]
+
+    d21, d02, d10 = pair(2, 1, -1.0), pair(0, 2, -1.0), pair(1, 0, -1.0)
+    s01, s02, s12 = pair(0, 1, 1.0), pair(0, 2, 1.0), pair(1, 2, 1.0)
     w0 = root(1.0 + trace)
     q0 = jnp.stack([d21 / (4 * w0), d02 / (4 * w0), d10 / (4 * w0), w0], axis=-1)
     x1 = root(1.0 + r00 - r11 - r22)
