@@ -1,0 +1,453 @@
+"""Trajectory metrics in numpy: KITTI relative error, absolute error, plots.
+
+Poses are ``(N, 4, 4)`` homogeneous matrices ``T_world_frame`` (see :mod:`gloam_jax.geometry`),
+ground truth and estimate indexed by the same frames.
+
+:func:`kitti_rte` reproduces the KITTI odometry devkit (``evaluate_odometry.cpp``): segments of
+100..800 m measured along the ground truth, starting every 10th frame, and the sequence score is
+the mean over all segments of all lengths. By default it replays the devkit's C ``float``
+arithmetic, so it reports the official numbers; ``precision="float64"`` gives the exact values.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from gloam_jax.errors import InputError
+
+__all__ = [
+    "DEFAULT_LENGTHS",
+    "AteResult",
+    "RteResult",
+    "ate",
+    "evaluate",
+    "kitti_rte",
+    "path_lengths",
+    "plot_evaluation",
+]
+
+DEFAULT_LENGTHS: tuple[int, ...] = (100, 200, 300, 400, 500, 600, 700, 800)
+"""Segment lengths of the KITTI odometry benchmark, metres."""
+
+_RAD_PER_M_TO_DEG_PER_100M = 180.0 / math.pi * 100.0
+# Inputs are usually read from text with ~9 significant digits, so the bottom row of a pose is
+# only checked loosely: it exists to catch a (3,4)->(4,4) padding bug, not rounding.
+_BOTTOM_ROW_ATOL = 1e-6
+
+Source = str | os.PathLike[str] | None
+Precision = Literal["devkit", "float64"]
+
+
+def _as_poses(poses: ArrayLike, what: str, source: Source) -> NDArray[np.float64]:
+    """Validate and convert to a float64 ``(N, 4, 4)`` array, raising :class:`InputError`."""
+    try:
+        arr = np.asarray(poses, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(source, f"{what} poses are not a numeric array ({exc})") from None
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise InputError(
+            source,
+            f"{what} poses must have shape (N, 4, 4), got {arr.shape}"
+            " (pad KITTI (N, 3, 4) rows with [0, 0, 0, 1])",
+        )
+    if arr.shape[0] == 0:
+        raise InputError(source, f"{what} trajectory is empty")
+    finite = np.isfinite(arr).all(axis=(1, 2))
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        raise InputError(
+            source,
+            f"{what} poses contain NaN or inf at {bad.size} pose(s), first at index {bad[0]}",
+        )
+    bottom_ok = np.all(np.abs(arr[:, 3, :] - (0.0, 0.0, 0.0, 1.0)) <= _BOTTOM_ROW_ATOL, axis=1)
+    if not bottom_ok.all():
+        first = int(np.flatnonzero(~bottom_ok)[0])
+        raise InputError(
+            source,
+            f"{what} pose {first} is not homogeneous: last row is {arr[first, 3].tolist()}, "
+            "expected [0, 0, 0, 1]",
+        )
+    return arr
+
+
+def _as_pair(
+    gt_poses: ArrayLike, est_poses: ArrayLike, source: Source
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    gt = _as_poses(gt_poses, "ground-truth", source)
+    est = _as_poses(est_poses, "estimated", source)
+    if gt.shape[0] != est.shape[0]:
+        raise InputError(source, f"{gt.shape[0]} gt poses vs {est.shape[0]} estimated poses")
+    return gt, est
+
+
+def _float_type(precision: Precision) -> type[np.floating[Any]]:
+    """The devkit's ``float`` (float32) or float64; anything else is a ValueError."""
+    if precision == "devkit":
+        return np.float32
+    if precision == "float64":
+        return np.float64
+    raise ValueError(f"precision must be 'devkit' or 'float64', got {precision!r}")
+
+
+def _norm3(v: NDArray[np.floating[Any]]) -> NDArray[np.floating[Any]]:
+    """Row norms of (M, 3) as the devkit writes them, ``sqrt(x*x + y*y + z*z)``, in v's dtype."""
+    return np.sqrt(v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1] + v[:, 2] * v[:, 2])
+
+
+def _mean(values: NDArray[np.floating[Any]]) -> float:
+    """Mean with the devkit's running sum in values' dtype (cumsum adds in order, not pairwise)."""
+    return float(np.cumsum(values, dtype=values.dtype)[-1] / values.dtype.type(values.size))
+
+
+def _distances(
+    poses: NDArray[np.float64], dtype: type[np.floating[Any]] = np.float64
+) -> NDArray[np.floating[Any]]:
+    """Cumulative ground-truth distance (N,) in ``dtype``, summed step by step as the devkit."""
+    steps = _norm3(np.diff(poses[:, :3, 3], axis=0).astype(dtype))
+    return np.concatenate((np.zeros(1, dtype), np.cumsum(steps, dtype=dtype)))
+
+
+def path_lengths(poses: ArrayLike, *, source: Source = None) -> NDArray[np.float64]:
+    """Cumulative distance travelled along the positions: (N, 4, 4) -> (N,), starting at 0."""
+    return _distances(_as_poses(poses, "input", source))
+
+
+@dataclass(frozen=True)
+class RteResult:
+    """KITTI relative trajectory error.
+
+    The scalar fields average over every segment of every length (the devkit's sequence score).
+    ``per_length`` has one entry per length with at least one segment. The per-segment arrays,
+    all ``(S,)`` in the devkit's order (first frame outer, length inner), hold ``t_err`` as a
+    fraction (m/m) and ``r_err`` in rad/m, both divided by the nominal segment length (float32
+    values held as float64 with the default ``precision="devkit"``).
+    """
+
+    t_err_percent: float
+    r_err_deg_per_100m: float
+    num_segments: int
+    per_length: dict[int, dict[str, float | int]]
+    first_frames: NDArray[np.int64] = field(repr=False)
+    last_frames: NDArray[np.int64] = field(repr=False)
+    segment_lengths: NDArray[np.float64] = field(repr=False)
+    t_err: NDArray[np.float64] = field(repr=False)
+    r_err: NDArray[np.float64] = field(repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary: plain floats and ints, ``per_length`` keyed by strings."""
+        return {
+            "t_err_percent": float(self.t_err_percent),
+            "r_err_deg_per_100m": float(self.r_err_deg_per_100m),
+            "num_segments": int(self.num_segments),
+            "per_length": {
+                str(length): {
+                    "t_err_percent": float(v["t_err_percent"]),
+                    "r_err_deg_per_100m": float(v["r_err_deg_per_100m"]),
+                    "num_segments": int(v["num_segments"]),
+                }
+                for length, v in self.per_length.items()
+            },
+        }
+
+
+def _check_lengths(lengths: tuple[float, ...] | list[float]) -> list[int]:
+    out: list[int] = []
+    for length in lengths:
+        # Integer metres keep the per-length dict keys (and their JSON strings) unambiguous.
+        if not (math.isfinite(length) and float(length).is_integer() and length > 0):
+            raise ValueError(f"segment lengths must be positive whole metres, got {length!r}")
+        out.append(int(length))
+    if not out:
+        raise ValueError("at least one segment length is needed")
+    if len(set(out)) != len(out):
+        raise ValueError(f"segment lengths must be distinct, got {list(lengths)}")
+    return out
+
+
+def kitti_rte(
+    gt_poses: ArrayLike,
+    est_poses: ArrayLike,
+    *,
+    step: int = 10,
+    lengths: tuple[float, ...] | list[float] = DEFAULT_LENGTHS,
+    precision: Precision = "devkit",
+    source: Source = None,
+) -> RteResult:
+    """KITTI odometry relative trajectory error of ``est_poses`` (N, 4, 4) against ``gt_poses``.
+
+    Same definition as the official devkit: segments start every ``step`` frames; a segment of
+    length ``L`` from frame ``f`` ends at the first frame whose ground-truth distance exceeds
+    ``dist[f] + L``; its error pose is ``inv(inv(E_f) E_l) @ (inv(G_f) G_l)``; errors are divided
+    by ``L`` (not the actual distance) and averaged over all segments of all lengths.
+
+    ``precision="devkit"`` replays the devkit's C ``float`` steps: the official benchmark numbers.
+    ``"float64"``: exact values; r_err differs ~1e-3 relative, more near 0 (float arccos ~5e-4 rad).
+
+    Raises :class:`InputError` (with ``source`` as the file name) for mismatched lengths, bad
+    shapes, NaN/inf, or a trajectory too short for any segment.
+    """
+    if int(step) != step or step < 1:
+        raise ValueError(f"step must be a positive integer, got {step!r}")
+    step = int(step)
+    lens = _check_lengths(lengths)
+    real = _float_type(precision)
+    gt, est = _as_pair(gt_poses, est_poses, source)
+    n = gt.shape[0]
+    dist = _distances(gt, real)
+
+    firsts_all = np.arange(0, n, step, dtype=np.int64)
+    # Devkit order: first frame in the outer loop, length in the inner one.
+    first_grid = np.repeat(firsts_all, len(lens))
+    len_grid = np.tile(np.asarray(lens, dtype=real), firsts_all.size)
+    # dist is non-decreasing, so the devkit's linear scan for the first dist[j] > dist[f] + L
+    # is exactly a right-sided binary search.
+    last_grid = np.searchsorted(dist, dist[first_grid] + len_grid, side="right")
+    keep = last_grid < n
+    if not keep.any():
+        shortest = min(lens)
+        # A segment must be strictly longer than its length, so equality is too short as well.
+        how = "<" if dist[-1] < shortest else "is not more than"
+        raise InputError(
+            source,
+            "trajectory is shorter than the shortest segment length: ground-truth path "
+            f"{dist[-1]:.1f} m {how} {shortest} m",
+        )
+    first = first_grid[keep]
+    last = last_grid[keep].astype(np.int64)
+    seg_len = len_grid[keep]
+
+    # General inverses (not the rigid-transform shortcut), as the devkit does, so slightly
+    # non-orthonormal rotations read from text are treated identically.
+    delta_gt = np.linalg.inv(gt[first]) @ gt[last]
+    delta_est = np.linalg.inv(est[first]) @ est[last]
+    err = np.linalg.inv(delta_est) @ delta_gt
+    # The devkit's rotationError: d = 0.5 * (a + b + c - 1.0) with a, b, c and the sum in `real`
+    # but the double literal 1.0 making the rest double, then d rounded back to `real`.
+    diag = np.diagonal(err[:, :3, :3], axis1=1, axis2=2).astype(real)
+    trace = diag[:, 0] + diag[:, 1] + diag[:, 2]
+    cos_angle = (0.5 * (trace.astype(np.float64) - 1.0)).astype(real)
+    r_err = np.arccos(np.clip(cos_angle, real(-1.0), real(1.0))) / seg_len
+    t_err = _norm3(err[:, :3, 3].astype(real)) / seg_len
+
+    per_length: dict[int, dict[str, float | int]] = {}
+    for length in lens:
+        sel = seg_len == length
+        count = int(sel.sum())
+        if count:
+            per_length[length] = {
+                "t_err_percent": _mean(t_err[sel]) * 100.0,
+                "r_err_deg_per_100m": _mean(r_err[sel]) * _RAD_PER_M_TO_DEG_PER_100M,
+                "num_segments": count,
+            }
+    return RteResult(
+        t_err_percent=_mean(t_err) * 100.0,
+        r_err_deg_per_100m=_mean(r_err) * _RAD_PER_M_TO_DEG_PER_100M,
+        num_segments=int(t_err.size),
+        per_length=per_length,
+        first_frames=first,
+        last_frames=last,
+        segment_lengths=seg_len.astype(np.float64),
+        t_err=t_err.astype(np.float64),
+        r_err=r_err.astype(np.float64),
+    )
+
+
+@dataclass(frozen=True)
+class AteResult:
+    """Absolute trajectory error of positions, metres.
+
+    ``errors`` is (N,); ``rotation`` (3, 3) and ``translation`` (3,) map the estimate onto the
+    ground truth (identity and zero when ``aligned`` is False). ``std`` is the population std.
+    """
+
+    rmse: float
+    mean: float
+    median: float
+    std: float
+    max: float
+    num_poses: int
+    aligned: bool
+    errors: NDArray[np.float64] = field(repr=False)
+    rotation: NDArray[np.float64] = field(repr=False)
+    translation: NDArray[np.float64] = field(repr=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (statistics, ``num_poses``, ``aligned``)."""
+        return {
+            "rmse": float(self.rmse),
+            "mean": float(self.mean),
+            "median": float(self.median),
+            "std": float(self.std),
+            "max": float(self.max),
+            "num_poses": int(self.num_poses),
+            "aligned": bool(self.aligned),
+        }
+
+
+def _umeyama_se3(
+    src: NDArray[np.float64], dst: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Rigid (R, t) minimising sum ||dst - (R src + t)||^2 for points (N, 3); no scale."""
+    mu_src = src.mean(axis=0)
+    mu_dst = dst.mean(axis=0)
+    cov = (dst - mu_dst).T @ (src - mu_src) / src.shape[0]
+    u, _, vt = np.linalg.svd(cov)
+    # Flip the weakest axis when needed so that R is a rotation, never a reflection.
+    d = np.ones(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0.0:
+        d[2] = -1.0
+    rot = (u * d) @ vt
+    return rot, mu_dst - rot @ mu_src
+
+
+def ate(
+    gt_poses: ArrayLike,
+    est_poses: ArrayLike,
+    align: bool = True,
+    *,
+    source: Source = None,
+) -> AteResult:
+    """Absolute position error of ``est_poses`` (N, 4, 4) against ``gt_poses`` (N, 4, 4).
+
+    With ``align`` the estimate is first moved by the least-squares rigid transform (Umeyama,
+    rotation + translation, no scale) onto the ground truth.
+    """
+    gt, est = _as_pair(gt_poses, est_poses, source)
+    p_gt = gt[:, :3, 3]
+    p_est = est[:, :3, 3]
+    if align:
+        rot, trans = _umeyama_se3(p_est, p_gt)
+    else:
+        rot, trans = np.eye(3), np.zeros(3)
+    errors = np.linalg.norm(p_gt - (p_est @ rot.T + trans), axis=1)
+    return AteResult(
+        rmse=float(np.sqrt(np.mean(errors**2))),
+        mean=float(errors.mean()),
+        median=float(np.median(errors)),
+        std=float(errors.std()),
+        max=float(errors.max()),
+        num_poses=int(errors.size),
+        aligned=bool(align),
+        errors=errors,
+        rotation=rot,
+        translation=trans,
+    )
+
+
+def evaluate(
+    gt_poses: ArrayLike,
+    est_poses: ArrayLike,
+    *,
+    step: int = 10,
+    lengths: tuple[float, ...] | list[float] = DEFAULT_LENGTHS,
+    precision: Precision = "devkit",
+    source: Source = None,
+) -> dict[str, Any]:
+    """KITTI RTE and aligned ATE of (N, 4, 4) trajectories in one JSON-ready dict.
+
+    Keys: those of :meth:`RteResult.to_dict`, ``ate`` (:meth:`AteResult.to_dict`),
+    ``num_poses`` and ``path_length_m`` (ground-truth path length); ``precision`` as for
+    :func:`kitti_rte`.
+    """
+    gt, est = _as_pair(gt_poses, est_poses, source)
+    rte = kitti_rte(gt, est, step=step, lengths=lengths, precision=precision, source=source)
+    return {
+        **rte.to_dict(),
+        "ate": ate(gt, est, align=True, source=source).to_dict(),
+        "num_poses": int(gt.shape[0]),
+        "path_length_m": float(_distances(gt)[-1]),
+    }
+
+
+def _plane_axes(*positions: NDArray[np.float64]) -> tuple[int, int]:
+    """The two axes with the largest extent, in axis order (x-z for KITTI camera poses)."""
+    pts = np.concatenate(positions, axis=0)
+    extent = pts.max(axis=0) - pts.min(axis=0)
+    # Stable sort so that ties (e.g. a straight line) fall back to the lower axis index.
+    first, second = sorted(np.argsort(-extent, kind="stable")[:2].tolist())
+    return int(first), int(second)
+
+
+def plot_evaluation(
+    gt_poses: ArrayLike,
+    est_poses: ArrayLike,
+    rte_result: RteResult | None,
+    path: str | os.PathLike[str],
+    *,
+    title: str | None = None,
+    source: Source = None,
+) -> Path:
+    """Write a PNG: top-down trajectories, and t_err % / r_err deg/100m per segment length.
+
+    ``rte_result`` is computed with the defaults when None. The file is written atomically
+    (temporary file in the same folder, then renamed); parent folders are created. Returns the
+    path written.
+    """
+    # The object-oriented API with an explicit Agg canvas leaves pyplot's global state and the
+    # user's backend alone, and works without a display.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    gt, est = _as_pair(gt_poses, est_poses, source)
+    if rte_result is None:
+        rte_result = kitti_rte(gt, est, source=source)
+    p_gt, p_est = gt[:, :3, 3], est[:, :3, 3]
+    ax0, ax1 = _plane_axes(p_gt, p_est)
+    names = "xyz"
+
+    fig = Figure(figsize=(13.0, 6.0), layout="constrained")
+    FigureCanvasAgg(fig)
+    grid = fig.add_gridspec(2, 2, width_ratios=(1.3, 1.0))
+    ax_traj = fig.add_subplot(grid[:, 0])
+    ax_t = fig.add_subplot(grid[0, 1])
+    ax_r = fig.add_subplot(grid[1, 1], sharex=ax_t)
+
+    ax_traj.plot(p_gt[:, ax0], p_gt[:, ax1], color="tab:red", lw=1.2, label="ground truth")
+    ax_traj.plot(p_est[:, ax0], p_est[:, ax1], color="tab:blue", lw=1.2, label="estimate")
+    ax_traj.plot(p_gt[0, ax0], p_gt[0, ax1], "ks", ms=6, mfc="none", label="start")
+    ax_traj.set_xlabel(f"{names[ax0]} [m]")
+    ax_traj.set_ylabel(f"{names[ax1]} [m]")
+    ax_traj.set_aspect("equal", adjustable="datalim")
+    ax_traj.grid(True, alpha=0.3)
+    ax_traj.legend(loc="best")
+    ax_traj.set_title(
+        f"t_err {rte_result.t_err_percent:.3f} %   "
+        f"r_err {rte_result.r_err_deg_per_100m:.4f} deg/100m   "
+        f"({rte_result.num_segments} segments)"
+    )
+
+    lens = sorted(rte_result.per_length)
+    t_vals = [rte_result.per_length[k]["t_err_percent"] for k in lens]
+    r_vals = [rte_result.per_length[k]["r_err_deg_per_100m"] for k in lens]
+    ax_t.plot(lens, t_vals, "o-", color="tab:blue")
+    ax_t.set_ylabel("translation error [%]")
+    ax_r.plot(lens, r_vals, "o-", color="tab:orange")
+    ax_r.set_ylabel("rotation error [deg/100m]")
+    ax_r.set_xlabel("segment length [m]")
+    for ax in (ax_t, ax_r):
+        ax.set_ylim(bottom=0.0)
+        ax.grid(True, alpha=0.3)
+    if title:
+        fig.suptitle(title)
+
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # Same-folder temporary file, so os.replace is an atomic rename and readers never see a
+    # half-written PNG.
+    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fig.savefig(fh, format="png", dpi=110)
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return out
