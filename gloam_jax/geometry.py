@@ -53,9 +53,7 @@ def _angle_coefficients(phi: Array) -> tuple[Array, Array, Array, Array]:
     t = jnp.sqrt(t2)
     half_sinc = jnp.sin(0.5 * t) / (0.5 * t)
     a = jnp.where(small, 1.0 - theta_sq / 6.0 + theta_sq**2 / 120.0, jnp.sin(t) / t)
-    b = jnp.where(
-        small, 0.5 - theta_sq / 24.0 + theta_sq**2 / 720.0, 0.5 * half_sinc * half_sinc
-    )
+    b = jnp.where(small, 0.5 - theta_sq / 24.0 + theta_sq**2 / 720.0, 0.5 * half_sinc * half_sinc)
     c = jnp.where(
         small,
         1.0 / 6.0 - theta_sq / 120.0 + theta_sq**2 / 5040.0 - theta_sq**3 / 362880.0,
@@ -78,6 +76,7 @@ def quat_from_rotation(R: ArrayLike) -> Array:
     R = jnp.asarray(R)
     r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
     trace = r00 + r11 + r22
+
     # Each candidate is well conditioned where it is chosen; the others are clamped so that
     # their (discarded) gradients stay finite.
     def root(x: Array) -> Array:

@@ -1,0 +1,394 @@
+"""Jitted ray casting of one LiDAR sweep against a :class:`~gloam_jax.simulate.scene.Scene`.
+
+Rays are grouped in azimuth sectors; each sector is tested only against the primitives that
+can lie in it (chosen on the host, padded to a power-of-two count so shapes, and compiled
+code, repeat from frame to frame). Coordinates are relative to the frame's sensor position
+(float32 stays precise far from the world origin).
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from gloam_jax.simulate.scene import (
+    GRID_RES,
+    PATTERN_SLATS,
+    PATTERN_WINDOWS,
+    ROAD,
+    SIDEWALK,
+    TERRAIN,
+    Primitives,
+    Scene,
+)
+
+MARCH_STEPS = 40  # ground samples per ray, geometrically spaced
+BISECT_STEPS = 10
+_FAR = 1e9
+
+
+class Prims(NamedTuple):
+    """Device-side primitive arrays, leading axes (..., P)."""
+
+    center: jax.Array
+    size: jax.Array
+    yaw: jax.Array
+    velocity: jax.Array
+    t_start: jax.Array
+    t_end: jax.Array
+    label: jax.Array
+    reflectivity: jax.Array
+    porosity: jax.Array
+    pattern: jax.Array
+    uid: jax.Array
+    valid: jax.Array
+
+
+class GroundGrid(NamedTuple):
+    origin: jax.Array  # (2,)
+    base: jax.Array  # (NX, NY)
+    dist: jax.Array  # (NX, NY)
+    params: jax.Array  # (3,) road half width, sidewalk width, curb height
+
+
+class Hits(NamedTuple):
+    """Per-ray results: range (inf where nothing), class id, reflectivity, |cos incidence|."""
+
+    t: jax.Array
+    label: jax.Array
+    reflectivity: jax.Array
+    cos_incidence: jax.Array
+
+
+def _hash_uniform(a: jax.Array, b: jax.Array, salt: jax.Array) -> jax.Array:
+    """Deterministic uniform [0, 1) from two uint32 ids (a small integer mixing hash)."""
+    x = a * jnp.uint32(0x9E3779B1) ^ (b * jnp.uint32(0x85EBCA77)) ^ salt
+    x = x ^ (x >> 16)
+    x = x * jnp.uint32(0x7FEB352D)
+    x = x ^ (x >> 15)
+    x = x * jnp.uint32(0x846CA68B)
+    x = x ^ (x >> 16)
+    return (x >> 8).astype(jnp.float32) * (1.0 / (1 << 24))
+
+
+def _to_local(o, d, tr, p: Prims):
+    """Ray origin/direction in each primitive's frame: (R, 3) x (P,) -> (R, P, 3) twice."""
+    centre = p.center + p.velocity * tr[:, None, None]
+    dx = o[:, None, :] - centre
+    c, s = jnp.cos(p.yaw), jnp.sin(p.yaw)
+
+    def rot(v):
+        return jnp.stack(
+            [c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1], v[..., 2]], -1
+        )
+
+    return rot(dx), rot(jnp.broadcast_to(d[:, None, :], dx.shape))
+
+
+def _world_normal(n_local, p: Prims):
+    c, s = jnp.cos(p.yaw), jnp.sin(p.yaw)
+    return jnp.stack(
+        [
+            c * n_local[..., 0] - s * n_local[..., 1],
+            s * n_local[..., 0] + c * n_local[..., 1],
+            n_local[..., 2],
+        ],
+        -1,
+    )
+
+
+def _active(tr, p: Prims):
+    return p.valid & (tr[:, None] >= p.t_start) & (tr[:, None] <= p.t_end)
+
+
+def _porous(t_in, t_out, ray_id, p: Prims, salt, depth):
+    """Foliage: a ray passes with the primitive's porosity, else returns inside the volume."""
+    u1 = _hash_uniform(ray_id[:, None], p.uid, salt)
+    u2 = _hash_uniform(ray_id[:, None], p.uid, salt ^ jnp.uint32(0x5BD1E995))
+    passes = u1 < p.porosity
+    t = jnp.where(p.porosity > 0, t_in + depth * (t_out - t_in) * u2 * u2, t_in)
+    return t, passes
+
+
+def box_hits(o, d, tr, ray_id, salt, p: Prims):
+    """Entry distance (inf if missed) and world normal: (R, P) and (R, P, 3)."""
+    lo, ld = _to_local(o, d, tr, p)
+    safe = jnp.where(jnp.abs(ld) < 1e-12, 1e-12, ld)
+    ta, tb = (-p.size - lo) / safe, (p.size - lo) / safe
+    near, far = jnp.minimum(ta, tb), jnp.maximum(ta, tb)
+    t_in, t_out = jnp.max(near, -1), jnp.min(far, -1)
+    axis = jnp.argmax(near, -1)
+    hit = _active(tr, p) & (t_out >= t_in) & (t_in > 1e-3)
+    local = lo + t_in[..., None] * ld
+    u = jnp.where(axis == 0, local[..., 1], local[..., 0])  # along the face that was hit
+    z_up = local[..., 2] + p.size[..., 2]  # height above the primitive's base
+    kind, period_u, period_z, depth = (p.pattern[..., k] for k in range(4))
+    side_face = axis < 2
+    fu = jnp.mod(u / jnp.maximum(period_u, 1e-3), 1.0)
+    fz = jnp.mod(z_up / jnp.maximum(period_z, 1e-3), 1.0)
+    window = (
+        (kind == PATTERN_WINDOWS) & side_face & (fu > 0.2) & (fu < 0.8) & (fz > 0.3) & (fz < 0.85)
+    )
+    window = window & (z_up > 1.0) & (z_up < 2 * p.size[..., 2] - 0.8)
+    ld_axis = jnp.abs(jnp.take_along_axis(ld, axis[..., None], -1)[..., 0])
+    t_hit = jnp.where(window, t_in + depth / jnp.maximum(ld_axis, 0.05), t_in)
+    slat_gap = (kind == PATTERN_SLATS) & side_face & (fu > period_z)  # period_z holds the fill
+    t_hit, passes = _porous(t_hit, jnp.minimum(t_out, t_in + 0.6), ray_id, p, salt, 1.0)
+    hit = hit & ~slat_gap & ~passes
+    sign = -jnp.sign(jnp.take_along_axis(ld, axis[..., None], -1))
+    n_local = jax.nn.one_hot(axis, 3, dtype=ld.dtype) * sign
+    return jnp.where(hit, t_hit, jnp.inf), _world_normal(n_local, p)
+
+
+def cylinder_hits(o, d, tr, ray_id, salt, p: Prims):
+    """Vertical cylinders (side surface only)."""
+    lo, ld = _to_local(o, d, tr, p)
+    r = p.size[..., 0]
+    a = ld[..., 0] ** 2 + ld[..., 1] ** 2
+    b = 2 * (lo[..., 0] * ld[..., 0] + lo[..., 1] * ld[..., 1])
+    c = lo[..., 0] ** 2 + lo[..., 1] ** 2 - r * r
+    disc = b * b - 4 * a * c
+    t = (-b - jnp.sqrt(jnp.maximum(disc, 0.0))) / jnp.maximum(2 * a, 1e-12)
+    z = lo[..., 2] + t * ld[..., 2]
+    hit = _active(tr, p) & (disc > 0) & (t > 1e-3) & (jnp.abs(z) <= p.size[..., 2])
+    local = lo + t[..., None] * ld
+    n_local = local * jnp.array([1.0, 1.0, 0.0]) / jnp.maximum(r, 1e-6)[..., None]
+    return jnp.where(hit, t, jnp.inf), _world_normal(n_local, p)
+
+
+def ellipsoid_hits(o, d, tr, ray_id, salt, p: Prims):
+    lo, ld = _to_local(o, d, tr, p)
+    q, e = lo / p.size, ld / p.size
+    a = jnp.sum(e * e, -1)
+    b = 2 * jnp.sum(q * e, -1)
+    c = jnp.sum(q * q, -1) - 1.0
+    disc = b * b - 4 * a * c
+    root = jnp.sqrt(jnp.maximum(disc, 0.0))
+    t_in = (-b - root) / jnp.maximum(2 * a, 1e-12)
+    t_out = (-b + root) / jnp.maximum(2 * a, 1e-12)
+    t, passes = _porous(t_in, t_out, ray_id, p, salt, 0.7)
+    hit = _active(tr, p) & (disc > 0) & (t_in > 1e-3) & ~passes
+    local = lo + t_in[..., None] * ld
+    n_local = local / (p.size * p.size)
+    n_local = n_local / jnp.maximum(jnp.linalg.norm(n_local, axis=-1, keepdims=True), 1e-9)
+    return jnp.where(hit, t, jnp.inf), _world_normal(n_local, p)
+
+
+def _bilinear(grid, xy, g: GroundGrid):
+    f = (xy - g.origin) / GRID_RES
+    f = jnp.clip(f, 0.0, jnp.array(grid.shape, f.dtype) - 1.001)
+    i0 = jnp.floor(f).astype(jnp.int32)
+    w = f - i0
+    i, j = i0[..., 0], i0[..., 1]
+    return (
+        (1 - w[..., 0]) * (1 - w[..., 1]) * grid[i, j]
+        + w[..., 0] * (1 - w[..., 1]) * grid[i + 1, j]
+        + (1 - w[..., 0]) * w[..., 1] * grid[i, j + 1]
+        + w[..., 0] * w[..., 1] * grid[i + 1, j + 1]
+    )
+
+
+def ground_height(xy, g: GroundGrid):
+    road_half, _, curb = g.params[0], g.params[1], g.params[2]
+    x = jnp.clip((_bilinear(g.dist, xy, g) - road_half) / 0.08, 0.0, 1.0)
+    return _bilinear(g.base, xy, g) + curb * x * x * (3 - 2 * x)
+
+
+def ground_hits(o, d, g: GroundGrid, t_max: float):
+    """March along each ray to the first point below the ground, then bisect: (R,) distances."""
+    ts = jnp.geomspace(0.3, t_max, MARCH_STEPS, dtype=o.dtype)
+
+    def below(t):
+        p = o + t[..., None] * d
+        return p[..., 2] < ground_height(p[..., :2], g)
+
+    under = jax.vmap(below, in_axes=0, out_axes=1)(
+        jnp.broadcast_to(ts[:, None], (MARCH_STEPS, o.shape[0]))
+    )
+    first = jnp.argmax(under, axis=1)
+    found = jnp.any(under, axis=1) & (first > 0)
+    hi = ts[first]
+    lo = ts[jnp.maximum(first - 1, 0)]
+
+    def bisect(_, bounds):
+        lo, hi = bounds
+        mid = 0.5 * (lo + hi)
+        b = below(mid)
+        return jnp.where(b, lo, mid), jnp.where(b, mid, hi)
+
+    lo, hi = jax.lax.fori_loop(0, BISECT_STEPS, bisect, (lo, hi))
+    return jnp.where(found, 0.5 * (lo + hi), jnp.inf)
+
+
+def _ground_normal_and_label(p, g: GroundGrid):
+    e = 0.2
+    dx = ground_height(p[..., :2] + jnp.array([e, 0.0]), g) - ground_height(
+        p[..., :2] - jnp.array([e, 0.0]), g
+    )
+    dy = ground_height(p[..., :2] + jnp.array([0.0, e]), g) - ground_height(
+        p[..., :2] - jnp.array([0.0, e]), g
+    )
+    n = jnp.stack([-dx / (2 * e), -dy / (2 * e), jnp.ones_like(dx)], -1)
+    n = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+    dist = _bilinear(g.dist, p[..., :2], g)
+    road_half, sidewalk = g.params[0], g.params[1]
+    label = jnp.where(
+        dist < road_half, ROAD, jnp.where(dist < road_half + sidewalk, SIDEWALK, TERRAIN)
+    )
+    return n, label
+
+
+_HIT_FNS = (box_hits, cylinder_hits, ellipsoid_hits)
+
+
+def _cast_sector(o, d, tr, ray_id, salt, prims: tuple[Prims, Prims, Prims]):
+    """Nearest primitive hit for one sector's rays: (t, label, reflectivity, normal)."""
+    best_t = jnp.full(o.shape[0], jnp.inf, o.dtype)
+    best = (best_t, jnp.zeros(o.shape[0], jnp.int32), jnp.zeros_like(best_t), jnp.zeros_like(o))
+    for fn, p in zip(_HIT_FNS, prims, strict=True):
+        t, _ = fn(o, d, tr, ray_id, salt, p)
+        k = jnp.argmin(t, axis=1)
+        t_k = jnp.take_along_axis(t, k[:, None], 1)[:, 0]
+        # Normal of the winner only: re-run the test against that one primitive.
+        winner = jax.tree.map(lambda a, k=k: a[k][:, None], p)
+        _, n = fn(o, d, tr, ray_id, salt, winner)
+        closer = t_k < best[0]
+        best = (
+            jnp.where(closer, t_k, best[0]),
+            jnp.where(closer, p.label[k], best[1]),
+            jnp.where(closer, p.reflectivity[k], best[2]),
+            jnp.where(closer[:, None], n[:, 0], best[3]),
+        )
+    return best
+
+
+@partial(jax.jit, static_argnames=("t_max",))
+def cast_sweep(
+    origins, dirs, times, ray_ids, salt, prims, ground: GroundGrid, reflectivity_lut, t_max: float
+):
+    """Cast a sweep grouped in S sectors of Rs rays each.
+
+    origins, dirs: (S, Rs, 3); times: (S, Rs) s from mid-sweep; ray_ids: (S, Rs) uint32;
+    prims: three :class:`Prims` (boxes, cylinders, ellipsoids) with leading axes (S, P_kind).
+    Returns :class:`Hits` with (S, Rs) fields.
+    """
+    t, label, refl, normal = jax.vmap(_cast_sector, in_axes=(0, 0, 0, 0, None, 0))(
+        origins, dirs, times, ray_ids, salt, prims
+    )
+    flat = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    t_g = ground_hits(*flat, ground, t_max).reshape(t.shape)
+    p_g = origins + t_g[..., None] * dirs
+    n_g, label_g = _ground_normal_and_label(p_g, ground)
+    use_ground = t_g < t
+    t = jnp.where(use_ground, t_g, t)
+    label = jnp.where(use_ground, label_g, label)
+    refl = jnp.where(use_ground, reflectivity_lut[label_g], refl)
+    normal = jnp.where(use_ground[..., None], n_g, normal)
+    cos_inc = jnp.abs(jnp.sum(normal * dirs, -1))
+    return Hits(t, label, refl, cos_inc)
+
+
+def _pad_count(n: int) -> int:
+    return max(8, 1 << int(np.ceil(np.log2(max(n, 1)))))
+
+
+def sector_primitives(
+    prims: Primitives,
+    origin: np.ndarray,
+    t_frame: float,
+    sector_origins: np.ndarray,
+    sector_azimuths: np.ndarray,
+    max_range: float,
+    min_pad: int = 8,
+) -> Prims:
+    """Primitives that may be seen in each azimuth sector, padded: leading axes (S, P).
+
+    origin: (3,) sensor position at mid-sweep, time t_frame: coordinates and times become
+    relative to these. sector_origins: (S, 2) world xy of the sensor during each sector;
+    sector_azimuths: (S, 2) world azimuths (radians) of each sector's first and last ray.
+    min_pad: pad to at least this many per sector (keep it sticky to avoid recompiling).
+    """
+    S = len(sector_origins)
+    centre_now = prims.center + prims.velocity * t_frame
+    # Moving objects: allow for their motion during the sweep.
+    radius = prims.bounding_radius() + 0.1 * np.linalg.norm(prims.velocity, axis=1) + 0.05
+    alive = (prims.t_end >= t_frame - 0.1) & (prims.t_start <= t_frame + 0.1)
+    dist0 = np.linalg.norm(centre_now[:, :2] - origin[:2], axis=1)
+    near_idx = np.flatnonzero((dist0 - radius < max_range + 2.0) & alive)
+    rel = centre_now[None, near_idx, :2] - sector_origins[:, None, :]  # (S, P_near, 2)
+    dist = np.linalg.norm(rel, axis=-1)
+    az = np.arctan2(rel[..., 1], rel[..., 0])
+    r = radius[near_idx][None, :]
+    half = np.where(dist <= r, np.pi, np.arcsin(np.clip(r / np.maximum(dist, 1e-6), 0, 1)) + 1e-3)
+    a0, a1 = sector_azimuths[:, :1], sector_azimuths[:, 1:]
+    span = np.abs((a1 - a0 + np.pi) % (2 * np.pi) - np.pi)
+    centre = a0 + 0.5 * ((a1 - a0 + np.pi) % (2 * np.pi) - np.pi)
+    diff = np.abs((az - centre + np.pi) % (2 * np.pi) - np.pi)
+    member = diff <= 0.5 * span + half  # (S, P_near)
+    P = max(min_pad, _pad_count(int(member.sum(axis=1).max()) if len(near_idx) else 0))
+    idx = np.zeros((S, P), dtype=np.int64)
+    valid = np.zeros((S, P), dtype=bool)
+    for s in range(S):
+        sel = near_idx[member[s]]
+        idx[s, : len(sel)] = sel
+        valid[s, : len(sel)] = True
+    if len(prims) == 0:
+        return _empty_prims(S, P)
+    sub = prims.take(idx)
+    return Prims(
+        center=(sub.center + sub.velocity * t_frame - origin).astype(np.float32),
+        size=np.maximum(sub.size, 1e-3).astype(np.float32),
+        yaw=sub.yaw.astype(np.float32),
+        velocity=sub.velocity.astype(np.float32),
+        t_start=np.clip(sub.t_start - t_frame, -1e6, 1e6).astype(np.float32),
+        t_end=np.clip(sub.t_end - t_frame, -1e6, 1e6).astype(np.float32),
+        label=sub.label.astype(np.int32),
+        reflectivity=sub.reflectivity.astype(np.float32),
+        porosity=sub.porosity.astype(np.float32),
+        pattern=sub.pattern.astype(np.float32),
+        uid=sub.uid.astype(np.uint32),
+        valid=valid,
+    )
+
+
+def _empty_prims(S: int, P: int) -> Prims:
+    f = np.zeros((S, P), np.float32)
+    f3 = np.zeros((S, P, 3), np.float32)
+    return Prims(
+        f3,
+        f3 + 1e-3,
+        f,
+        f3,
+        f,
+        f,
+        f.astype(np.int32),
+        f,
+        f,
+        np.zeros((S, P, 4), np.float32),
+        f.astype(np.uint32),
+        np.zeros((S, P), bool),
+    )
+
+
+def ground_window(scene: Scene, origin: np.ndarray, half_extent: float) -> GroundGrid:
+    """A fixed-size crop of the ground grid around ``origin``, in coordinates relative to it."""
+    g = scene.ground
+    n = int(np.ceil(2 * half_extent / GRID_RES)) + 2
+    start = np.floor((origin[:2] - half_extent - g.origin) / GRID_RES).astype(int)
+    start = np.clip(start, 0, np.maximum(np.array(g.base_height.shape) - n, 0))
+    sl = (slice(start[0], start[0] + n), slice(start[1], start[1] + n))
+    base = np.full((n, n), -1e3, np.float32)
+    dist = np.full((n, n), 1e3, np.float32)
+    crop_b, crop_d = g.base_height[sl], g.path_distance[sl]
+    base[: crop_b.shape[0], : crop_b.shape[1]] = crop_b - origin[2]
+    dist[: crop_d.shape[0], : crop_d.shape[1]] = crop_d
+    return GroundGrid(
+        origin=(g.origin + start * GRID_RES - origin[:2]).astype(np.float32),
+        base=base,
+        dist=dist,
+        params=np.array([g.road_half_width, g.sidewalk_width, g.curb_height], np.float32),
+    )

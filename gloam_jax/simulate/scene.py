@@ -1,0 +1,698 @@
+"""Procedural street scenes built around a trajectory, with SemanticKITTI class ids.
+
+The world is a ground height field (road, curbs, sidewalks, terrain) plus three kinds of solid
+primitives, each stored as flat arrays: yaw-rotated boxes, vertical cylinders and yaw-rotated
+ellipsoids. Every primitive has a class id, a reflectivity, a porosity (the chance a ray passes
+through, for foliage and hedges), an optional surface pattern (recessed windows, fence slats)
+and a constant velocity with an activity window, for moving road users. World frame: z up,
+metres, seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import map_coordinates
+from scipy.spatial import cKDTree
+
+from gloam_jax.simulate.trajectory import Trajectory
+
+# SemanticKITTI class ids (labels/*.label, low 16 bits).
+UNLABELED, CAR, BICYCLE, PERSON, BICYCLIST = 0, 10, 11, 30, 31
+ROAD, SIDEWALK, BUILDING, FENCE, OTHER_STRUCTURE = 40, 48, 50, 51, 52
+VEGETATION, TRUNK, TERRAIN, POLE, TRAFFIC_SIGN = 70, 71, 72, 80, 81
+MOVING_CAR, MOVING_BICYCLIST, MOVING_PERSON = 252, 253, 254
+
+CLASS_NAMES = {
+    UNLABELED: "unlabeled",
+    CAR: "car",
+    BICYCLE: "bicycle",
+    PERSON: "person",
+    BICYCLIST: "bicyclist",
+    ROAD: "road",
+    SIDEWALK: "sidewalk",
+    BUILDING: "building",
+    FENCE: "fence",
+    OTHER_STRUCTURE: "other-structure",
+    VEGETATION: "vegetation",
+    TRUNK: "trunk",
+    TERRAIN: "terrain",
+    POLE: "pole",
+    TRAFFIC_SIGN: "traffic-sign",
+    MOVING_CAR: "moving-car",
+    MOVING_BICYCLIST: "moving-bicyclist",
+    MOVING_PERSON: "moving-person",
+}
+
+# Surface patterns of a primitive's vertical faces.
+PATTERN_NONE, PATTERN_WINDOWS, PATTERN_SLATS = 0, 1, 2
+
+GRID_RES = 0.5  # ground grid spacing (m)
+
+
+@dataclass(frozen=True)
+class StyleParams:
+    road_half_width: tuple[float, float]
+    sidewalk_width: tuple[float, float]
+    curb_height: float
+    terrain_relief: float  # amplitude (m) of terrain undulation beyond the sidewalk
+    building_density: float  # fraction of frontage with buildings
+    building_setback: tuple[float, float]
+    building_height: tuple[float, float]
+    parked_car_prob: float
+    tree_spacing: float
+    pole_spacing: float
+    hedge_fence_prob: float
+    guard_rails: bool
+    actor_interval_s: float  # mean time between new moving road users
+
+
+STYLES: dict[str, StyleParams] = {
+    "urban": StyleParams(
+        (5.0, 6.5),
+        (2.5, 4.0),
+        0.14,
+        0.3,
+        0.85,
+        (0.0, 3.0),
+        (7.0, 24.0),
+        0.55,
+        14.0,
+        30.0,
+        0.5,
+        False,
+        2.5,
+    ),
+    "suburban": StyleParams(
+        (3.8, 4.8),
+        (1.5, 2.2),
+        0.11,
+        0.8,
+        0.45,
+        (6.0, 14.0),
+        (5.0, 9.0),
+        0.25,
+        9.0,
+        40.0,
+        0.8,
+        False,
+        4.0,
+    ),
+    "highway": StyleParams(
+        (9.0, 11.0),
+        (0.0, 0.0),
+        0.0,
+        1.5,
+        0.0,
+        (25.0, 40.0),
+        (6.0, 10.0),
+        0.0,
+        18.0,
+        60.0,
+        0.15,
+        True,
+        3.0,
+    ),
+}
+
+REFLECTIVITY = {
+    ROAD: 0.22,
+    SIDEWALK: 0.3,
+    TERRAIN: 0.38,
+    BUILDING: 0.35,
+    FENCE: 0.32,
+    OTHER_STRUCTURE: 0.3,
+    VEGETATION: 0.45,
+    TRUNK: 0.3,
+    POLE: 0.45,
+    TRAFFIC_SIGN: 0.95,
+    CAR: 0.4,
+    MOVING_CAR: 0.4,
+    MOVING_PERSON: 0.3,
+    MOVING_BICYCLIST: 0.33,
+}
+
+
+@dataclass
+class Primitives:
+    """N primitives of one kind. ``size`` is the box half-extents, the cylinder's
+    (radius, radius, half height) or the ellipsoid's radii; ``center`` is at time 0."""
+
+    center: np.ndarray  # (N, 3)
+    size: np.ndarray  # (N, 3)
+    yaw: np.ndarray  # (N,)
+    velocity: np.ndarray  # (N, 3)
+    t_start: np.ndarray  # (N,) exists from ...
+    t_end: np.ndarray  # (N,) ... to, seconds
+    label: np.ndarray  # (N,) int32
+    reflectivity: np.ndarray  # (N,)
+    porosity: np.ndarray  # (N,)
+    pattern: np.ndarray  # (N, 4): type, period along the face, period in z (or fill), depth
+    uid: np.ndarray  # (N,) uint32, decorrelates per-primitive randomness
+
+    def __len__(self) -> int:
+        return len(self.label)
+
+    def take(self, idx: np.ndarray) -> Primitives:
+        return Primitives(**{k: v[idx] for k, v in self.__dict__.items()})
+
+    def bounding_radius(self) -> np.ndarray:
+        return np.linalg.norm(self.size, axis=1)
+
+
+@dataclass
+class _PrimitiveList:
+    rows: list[tuple] = field(default_factory=list)
+
+    def add(
+        self,
+        center,
+        size,
+        yaw=0.0,
+        label=UNLABELED,
+        *,
+        porosity=0.0,
+        pattern=(0, 0, 0, 0),
+        velocity=(0.0, 0.0, 0.0),
+        t_range=(-np.inf, np.inf),
+        reflectivity=None,
+    ) -> None:
+        refl = REFLECTIVITY.get(label, 0.3) if reflectivity is None else reflectivity
+        self.rows.append((center, size, yaw, velocity, t_range, label, refl, porosity, pattern))
+
+    def build(self, uid_offset: int) -> Primitives:
+        n = len(self.rows)
+        cols = list(zip(*self.rows, strict=True)) if n else [()] * 9
+
+        def arr(i, shape, dtype=np.float64):
+            return np.asarray(cols[i], dtype=dtype).reshape((n, *shape))
+
+        t_range = arr(4, (2,))
+        return Primitives(
+            center=arr(0, (3,)),
+            size=arr(1, (3,)),
+            yaw=arr(2, ()),
+            velocity=arr(3, (3,)),
+            t_start=t_range[:, 0],
+            t_end=t_range[:, 1],
+            label=arr(5, (), np.int32),
+            reflectivity=arr(6, ()),
+            porosity=arr(7, ()),
+            pattern=arr(8, (4,)),
+            uid=(uid_offset + np.arange(n)).astype(np.uint32),
+        )
+
+
+@dataclass
+class Ground:
+    """Height field on a regular grid: cell (i, j) is at origin + (i, j) * GRID_RES."""
+
+    origin: np.ndarray  # (2,) x, y of cell (0, 0)
+    base_height: np.ndarray  # (NX, NY) road height + bumps + terrain relief
+    path_distance: np.ndarray  # (NX, NY) horizontal distance to the driven path
+    road_half_width: float
+    sidewalk_width: float
+    curb_height: float
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """Ground height at (K, 2) points (numpy twin of the ray caster's lookup)."""
+        ij = ((xy - self.origin) / GRID_RES).T
+        base = map_coordinates(self.base_height, ij, order=1, mode="nearest")
+        dist = map_coordinates(self.path_distance, ij, order=1, mode="nearest")
+        return base + self.curb_height * _smoothstep((dist - self.road_half_width) / 0.08)
+
+
+@dataclass
+class Scene:
+    style: str
+    ground: Ground
+    boxes: Primitives
+    cylinders: Primitives
+    ellipsoids: Primitives
+
+
+def _smoothstep(x: np.ndarray) -> np.ndarray:
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+def smooth_field(rng: np.random.Generator, shape: tuple[int, int], cell: float) -> np.ndarray:
+    """Unit-variance smooth noise on a grid, correlated over ``cell`` grid steps."""
+    coarse = rng.normal(size=(shape[0] // max(int(cell), 1) + 3, shape[1] // max(int(cell), 1) + 3))
+    ii = np.linspace(0, shape[0] / max(cell, 1.0), shape[0]) + 1
+    jj = np.linspace(0, shape[1] / max(cell, 1.0), shape[1]) + 1
+    grid = np.meshgrid(ii, jj, indexing="ij")
+    return map_coordinates(coarse, grid, order=3, mode="nearest")
+
+
+class _Path:
+    """The driven road's centre line resampled every 0.5 m, with headings and a k-d tree."""
+
+    def __init__(self, traj: Trajectory, mount_height: float) -> None:
+        road = traj.T_world_lidar[:, :3, :3] @ np.array([0.0, 0.0, -mount_height])
+        road = road + traj.T_world_lidar[:, :3, 3]
+        seg = np.linalg.norm(np.diff(road, axis=0), axis=1)
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        keep = np.concatenate([[True], seg > 1e-6])
+        s, road = s[keep], road[keep]
+        self.s = np.arange(0.0, s[-1], 0.5)
+        self.points = np.stack([np.interp(self.s, s, road[:, k]) for k in range(3)], axis=1)
+        d = np.gradient(self.points[:, :2], axis=0)
+        self.tangent = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-9)
+        self.normal = np.stack([-self.tangent[:, 1], self.tangent[:, 0]], axis=1)  # left
+        self.tree = cKDTree(self.points[:, :2])
+        self.length = float(self.s[-1])
+
+    def at(self, s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Road point (3,), unit tangent (2,) and left normal (2,) at arc length s."""
+        i = int(np.clip(np.searchsorted(self.s, s), 0, len(self.s) - 1))
+        return self.points[i], self.tangent[i], self.normal[i]
+
+    def distance(self, xy: np.ndarray) -> np.ndarray:
+        return self.tree.query(xy, workers=-1)[0]
+
+
+class _Occupancy:
+    """Coarse raster of used ground, so objects do not overlap each other."""
+
+    def __init__(self, cell: float = 0.5) -> None:
+        self.cell = cell
+        self.used: set[tuple[int, int]] = set()
+
+    def cells(self, xy: np.ndarray, half: np.ndarray, yaw: float) -> set[tuple[int, int]]:
+        c, s = np.cos(yaw), np.sin(yaw)
+        n = np.maximum(np.ceil(2 * half / self.cell).astype(int) + 1, 2)
+        u, v = np.meshgrid(
+            np.linspace(-half[0], half[0], n[0]), np.linspace(-half[1], half[1], n[1])
+        )
+        pts = xy + np.stack([c * u - s * v, s * u + c * v], axis=-1).reshape(-1, 2)
+        return set(map(tuple, np.floor(pts / self.cell).astype(int)))
+
+    def try_claim(self, xy, half, yaw) -> bool:
+        cells = self.cells(np.asarray(xy), np.asarray(half), yaw)
+        if cells & self.used:
+            return False
+        self.used |= cells
+        return True
+
+
+def _footprint_points(xy: np.ndarray, half: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    u, v = np.meshgrid(np.linspace(-1, 1, 5) * half[0], np.linspace(-1, 1, 5) * half[1])
+    return xy + np.stack([c * u - s * v, s * u + c * v], axis=-1).reshape(-1, 2)
+
+
+class _SceneBuilder:
+    def __init__(
+        self,
+        traj: Trajectory,
+        style: str,
+        seed: int,
+        mount_height: float,
+        dynamic: bool,
+        detail: bool,
+    ) -> None:
+        if style not in STYLES:
+            raise ValueError(f"unknown scene style {style!r}; choose one of {', '.join(STYLES)}")
+        self.traj, self.style, self.p = traj, style, STYLES[style]
+        self.rng = np.random.default_rng(seed)
+        self.path = _Path(traj, mount_height)
+        self.dynamic, self.detail = dynamic, detail
+        self.road_half = float(self.rng.uniform(*self.p.road_half_width))
+        self.sidewalk = float(self.rng.uniform(*self.p.sidewalk_width))
+        self.edge = self.road_half + self.sidewalk  # where private ground starts
+        self.occ = _Occupancy()
+        self.boxes, self.cyls, self.ells = _PrimitiveList(), _PrimitiveList(), _PrimitiveList()
+
+    # -- placement helpers ---------------------------------------------------------------
+    def _clear_of_road(self, xy, half, yaw, clearance) -> bool:
+        return bool(
+            self.path.distance(_footprint_points(np.asarray(xy), np.asarray(half), yaw)).min()
+            > clearance
+        )
+
+    def _place(self, s: float, side: int, lateral: float, half, yaw_offset=0.0, clearance=None):
+        """Centre and yaw of a footprint at arc length s, ``lateral`` metres to one side."""
+        point, tangent, normal = self.path.at(s)
+        xy = point[:2] + side * lateral * normal
+        yaw = float(np.arctan2(tangent[1], tangent[0]) + yaw_offset)
+        half = np.asarray(half, dtype=float)
+        if clearance is not None and not self._clear_of_road(xy, half[:2], yaw, clearance):
+            return None
+        if not self.occ.try_claim(xy, half[:2], yaw):
+            return None
+        return xy, yaw
+
+    def ground_z(self, xy) -> float:
+        return float(self.path.points[self.path.tree.query(xy)[1], 2])
+
+    # -- scene parts ---------------------------------------------------------------------
+    def buildings(self) -> None:
+        p, rng = self.p, self.rng
+        if p.building_density <= 0:
+            return
+        for side in (1, -1):
+            s = rng.uniform(0, 10)
+            while s < self.path.length:
+                width = rng.uniform(8.0, 24.0) if self.style == "urban" else rng.uniform(8, 14)
+                if rng.random() > p.building_density:
+                    s += rng.uniform(4.0, 14.0)
+                    continue
+                depth = rng.uniform(8.0, 16.0)
+                setback = rng.uniform(*p.building_setback)
+                height = rng.uniform(*p.building_height)
+                half = np.array([width / 2, depth / 2, height / 2])
+                placed = self._place(
+                    s + width / 2,
+                    side,
+                    self.edge + setback + depth / 2,
+                    half,
+                    yaw_offset=rng.normal(0, 0.03),
+                    clearance=self.edge,
+                )
+                if placed is not None:
+                    self._building(placed, half, side)
+                s += width + rng.uniform(0.0, 3.0)
+
+    def _building(self, placed, half, side) -> None:
+        (xy, yaw), rng = placed, self.rng
+        z0 = self.ground_z(xy) - 0.3  # a little below grade so slopes leave no gap
+        half = half + np.array([0, 0, 0.15])
+        pattern = (0, 0, 0, 0)
+        if self.detail and rng.random() < 0.8:
+            pattern = (
+                PATTERN_WINDOWS,
+                rng.uniform(2.4, 3.6),
+                rng.uniform(2.8, 3.4),
+                rng.uniform(0.15, 0.35),
+            )
+        self.boxes.add([*xy, z0 + half[2]], half, yaw, BUILDING, pattern=pattern)
+        if self.detail and rng.random() < 0.6:  # cornice / ledge sticking out of the facade
+            ledge = half + np.array([0.35, 0.35, 0.0])
+            ledge[2] = rng.uniform(0.15, 0.3)
+            self.boxes.add([*xy, z0 + 2 * half[2] - ledge[2]], ledge, yaw, BUILDING)
+        if self.detail and rng.random() < 0.35:  # lower annex, making an L or stepped outline
+            annex = half * np.array([rng.uniform(0.3, 0.6), rng.uniform(0.8, 1.1), 0.0])
+            annex[2] = rng.uniform(1.5, 3.0)
+            c, s = np.cos(yaw), np.sin(yaw)
+            shift = (half[0] + annex[0]) * np.array([c, s]) * rng.choice([-1, 1])
+            if self.occ.try_claim(xy + shift, annex[:2], yaw):
+                self.boxes.add([*(xy + shift), z0 + annex[2]], annex, yaw, BUILDING)
+
+    def parked_cars(self) -> None:
+        rng = self.rng
+        for side in (1, -1):
+            s = rng.uniform(0, 6)
+            while s < self.path.length:
+                length = rng.uniform(4.0, 4.9)
+                if rng.random() < self.p.parked_car_prob:
+                    half = np.array([length / 2, 0.9, 0.75])
+                    placed = self._place(
+                        s,
+                        side,
+                        self.road_half - 1.15,
+                        half,
+                        yaw_offset=rng.normal(0, 0.03),
+                        clearance=2.6,
+                    )
+                    if placed is not None:
+                        self._car(*placed, CAR, length)
+                s += length + rng.uniform(0.8, 2.5)
+
+    def _car(self, xy, yaw, label, length, velocity=(0, 0, 0), t_range=(-np.inf, np.inf)) -> None:
+        rng, z = self.rng, self.ground_z(xy)
+        width = rng.uniform(1.7, 1.9)
+        body_h = rng.uniform(0.6, 0.8)
+        kw = dict(velocity=velocity, t_range=t_range)
+        # Body clear of the road (rays pass under it) and a rounded cabin.
+        self.boxes.add(
+            [*xy, z + 0.3 + body_h / 2], [length / 2, width / 2, body_h / 2], yaw, label, **kw
+        )
+        c, s = np.cos(yaw), np.sin(yaw)
+        back = -rng.uniform(0.1, 0.5) * np.array([c, s])
+        self.ells.add(
+            [*(xy + back), z + 0.3 + body_h], [length * 0.3, width * 0.46, 0.55], yaw, label, **kw
+        )
+
+    def poles_and_signs(self) -> None:
+        rng = self.rng
+        for side in (1, -1):
+            s = rng.uniform(0, self.p.pole_spacing)
+            while s < self.path.length:
+                lateral = self.road_half + (0.5 if self.sidewalk > 0 else 2.0)
+                if rng.random() < 0.7:  # street lamp with an arm over the road
+                    height, r = rng.uniform(6.0, 9.0), rng.uniform(0.07, 0.13)
+                    placed = self._place(s, side, lateral, [r, r, height / 2], clearance=2.5)
+                    if placed is not None:
+                        (xy, yaw), z = placed, self.ground_z(placed[0])
+                        self.cyls.add([*xy, z + height / 2], [r, r, height / 2], 0.0, POLE)
+                        _, _, n = self.path.at(s)
+                        arm_xy = xy - side * 0.9 * n
+                        self.boxes.add(
+                            [*arm_xy, z + height - 0.1],
+                            [0.9, 0.06, 0.06],
+                            float(np.arctan2(n[1], n[0])),
+                            POLE,
+                        )
+                else:  # traffic sign: thin pole, reflective panel facing the traffic
+                    height, r = rng.uniform(2.2, 3.2), 0.04
+                    placed = self._place(s, side, lateral, [0.4, 0.4, height / 2], clearance=2.5)
+                    if placed is not None:
+                        (xy, yaw), z = placed, self.ground_z(placed[0])
+                        self.cyls.add([*xy, z + height / 2], [r, r, height / 2], 0.0, POLE)
+                        panel = [0.03, rng.uniform(0.3, 0.45), rng.uniform(0.3, 0.45)]
+                        self.boxes.add([*xy, z + height + panel[2] - 0.2], panel, yaw, TRAFFIC_SIGN)
+                s += self.p.pole_spacing * rng.uniform(0.6, 1.4)
+
+    def trees_and_bushes(self) -> None:
+        rng = self.rng
+        for side in (1, -1):
+            s = rng.uniform(0, self.p.tree_spacing)
+            while s < self.path.length:
+                if self.style == "urban":
+                    lateral = self.road_half + self.sidewalk * 0.75
+                else:
+                    lateral = self.edge + rng.uniform(2.0, 25.0 if self.style == "highway" else 9.0)
+                trunk_r, trunk_h = rng.uniform(0.12, 0.3), rng.uniform(1.8, 3.5)
+                crown = np.array([rng.uniform(1.5, 3.5)] * 2 + [rng.uniform(1.4, 3.0)])
+                placed = self._place(s, side, lateral, [trunk_r * 2, trunk_r * 2, 1], clearance=2.0)
+                if placed is not None:
+                    (xy, _), z = placed, self.ground_z(placed[0])
+                    self.cyls.add(
+                        [*xy, z + trunk_h / 2 - 0.1],
+                        [trunk_r, trunk_r, trunk_h / 2 + 0.1],
+                        0.0,
+                        TRUNK,
+                    )
+                    crown_z = z + trunk_h + 0.7 * crown[2]
+                    self.ells.add(
+                        [*xy, crown_z],
+                        crown,
+                        rng.uniform(0, np.pi),
+                        VEGETATION,
+                        porosity=rng.uniform(0.3, 0.6),
+                    )
+                if self.style != "urban" and rng.random() < 0.5:  # a bush nearby
+                    radii = np.array([rng.uniform(0.6, 1.5)] * 2 + [rng.uniform(0.5, 1.0)])
+                    bush = self._place(
+                        s + rng.uniform(2, 5),
+                        side,
+                        lateral + rng.uniform(-1, 2),
+                        radii,
+                        clearance=self.edge,
+                    )
+                    if bush is not None:
+                        xy = bush[0]
+                        self.ells.add(
+                            [*xy, self.ground_z(xy) + 0.5 * radii[2]],
+                            radii,
+                            rng.uniform(0, np.pi),
+                            VEGETATION,
+                            porosity=0.25,
+                        )
+                s += self.p.tree_spacing * rng.uniform(0.5, 1.5)
+
+    def hedges_fences_walls(self) -> None:
+        rng, p = self.rng, self.p
+        for side in (1, -1):
+            s = rng.uniform(0, 20)
+            while s < self.path.length:
+                length = rng.uniform(6.0, 25.0)
+                if rng.random() < p.hedge_fence_prob:
+                    kind = rng.choice(["hedge", "fence", "wall"], p=[0.4, 0.4, 0.2])
+                    lateral = self.edge + rng.uniform(0.3, 1.5)
+                    if kind == "hedge":
+                        half = [length / 2, rng.uniform(0.4, 0.7), rng.uniform(0.5, 0.9)]
+                        label, por, pattern = VEGETATION, 0.3, (0, 0, 0, 0)
+                    elif kind == "fence":
+                        half = [length / 2, 0.03, rng.uniform(0.5, 1.0)]
+                        label, por = FENCE, 0.0
+                        pattern = (PATTERN_SLATS, rng.uniform(0.1, 0.25), rng.uniform(0.4, 0.8), 0)
+                    else:
+                        half = [length / 2, 0.12, rng.uniform(0.6, 1.5)]
+                        label, por, pattern = OTHER_STRUCTURE, 0.0, (0, 0, 0, 0)
+                    half = np.asarray(half)
+                    placed = self._place(
+                        s + length / 2, side, lateral + half[1], half, clearance=self.edge
+                    )
+                    if placed is not None:
+                        xy, yaw = placed
+                        self.boxes.add(
+                            [*xy, self.ground_z(xy) + half[2] - 0.05],
+                            half,
+                            yaw,
+                            label,
+                            porosity=por,
+                            pattern=pattern,
+                        )
+                s += length + rng.uniform(5.0, 30.0)
+
+    def guard_rails(self) -> None:
+        if not self.p.guard_rails:
+            return
+        for side in (1, -1):
+            s = 0.0
+            while s < self.path.length:
+                seg = 6.0
+                placed = self._place(
+                    s + seg / 2,
+                    side,
+                    self.road_half + 1.0,
+                    [seg / 2, 0.05, 0.17],
+                    clearance=self.road_half + 0.5,
+                )
+                if placed is not None:
+                    xy, yaw = placed
+                    z = self.ground_z(xy)
+                    self.boxes.add([*xy, z + 0.6], [seg / 2, 0.05, 0.17], yaw, FENCE)
+                    self.cyls.add([*xy, z + 0.35], [0.06, 0.06, 0.35], 0.0, FENCE)
+                s += seg
+            # Occasional noise-barrier walls further out.
+            s = self.rng.uniform(0, 200)
+            while s < self.path.length:
+                length = self.rng.uniform(40, 120)
+                half = np.array([length / 2, 0.15, self.rng.uniform(1.5, 2.2)])
+                if self.rng.random() < 0.4:
+                    placed = self._place(
+                        s + length / 2,
+                        side,
+                        self.road_half + 6.0,
+                        half,
+                        clearance=self.road_half + 3.0,
+                    )
+                    if placed is not None:
+                        xy, yaw = placed
+                        self.boxes.add(
+                            [*xy, self.ground_z(xy) + half[2] - 0.1], half, yaw, OTHER_STRUCTURE
+                        )
+                s += length + self.rng.uniform(50, 300)
+
+    def moving_actors(self) -> None:
+        """Cars, cyclists and pedestrians moving in straight lines for a few seconds each."""
+        if not self.dynamic:
+            return
+        rng, traj = self.rng, self.traj
+        t0, t1 = traj.frame_times[0], traj.frame_times[-1]
+        t = t0 - 3.0
+        while t < t1:
+            ego = traj.poses_at(np.array([t]))[0, :2, 3]
+            s_ego = self.path.s[self.path.tree.query(ego)[1]]
+            kind = rng.choice(
+                ["oncoming", "ahead", "cyclist", "pedestrian"], p=[0.4, 0.2, 0.15, 0.25]
+            )
+            duration = rng.uniform(5.0, 9.0)
+            t_range = (t, t + duration)
+            if kind in ("oncoming", "ahead"):
+                speed = rng.uniform(6.0, 14.0)
+                s0 = (
+                    s_ego + rng.uniform(50.0, 90.0)
+                    if kind == "oncoming"
+                    else s_ego + rng.uniform(12, 30)
+                )
+                lateral, direction = (3.3, -1.0) if kind == "oncoming" else (0.0, 1.0)
+                point, tangent, normal = self.path.at(s0)
+                xy = point[:2] + lateral * normal
+                vel = direction * speed * tangent
+                # Centre at time 0 so that it is at xy at time t.
+                xy0 = xy - vel * t
+                yaw = float(np.arctan2(vel[1], vel[0]))
+                self._car(xy0, yaw, MOVING_CAR, rng.uniform(4.0, 4.8), (*vel, 0.0), t_range)
+            elif kind == "cyclist":
+                speed = rng.uniform(3.5, 6.5)
+                point, tangent, normal = self.path.at(s_ego + rng.uniform(10, 40))
+                side = rng.choice([-1, 1])
+                xy = point[:2] + side * (self.road_half - 0.8) * normal
+                vel = speed * tangent * (1 if side < 0 else -1)
+                xy0, yaw, z = xy - vel * t, float(np.arctan2(vel[1], vel[0])), point[2]
+                kw = dict(velocity=(*vel, 0.0), t_range=t_range)
+                self.boxes.add([*xy0, z + 0.5], [0.85, 0.05, 0.45], yaw, MOVING_BICYCLIST, **kw)
+                self.ells.add([*xy0, z + 1.35], [0.3, 0.22, 0.45], yaw, MOVING_BICYCLIST, **kw)
+            else:
+                speed = rng.uniform(0.9, 1.7)
+                point, tangent, normal = self.path.at(s_ego + rng.uniform(-10, 40))
+                side = rng.choice([-1, 1])
+                xy = point[:2] + side * (self.road_half + max(self.sidewalk, 1.5) * 0.5) * normal
+                vel = speed * tangent * rng.choice([-1, 1])
+                xy0, yaw, z = (
+                    xy - vel * t,
+                    float(np.arctan2(vel[1], vel[0])),
+                    point[2] + self.p.curb_height,
+                )
+                kw = dict(velocity=(*vel, 0.0), t_range=(t, t + 3 * duration))
+                self.ells.add([*xy0, z + 1.25], [0.15, 0.24, 0.38], yaw, MOVING_PERSON, **kw)
+                self.ells.add([*xy0, z + 1.72], [0.11, 0.11, 0.13], yaw, MOVING_PERSON, **kw)
+                self.boxes.add([*xy0, z + 0.45], [0.12, 0.17, 0.45], yaw, MOVING_PERSON, **kw)
+            t += rng.exponential(self.p.actor_interval_s)
+
+    def ground(self) -> Ground:
+        rng = self.rng
+        pts = self.path.points[:, :2]
+        lo = pts.min(axis=0) - 140.0
+        hi = pts.max(axis=0) + 140.0
+        shape = tuple(np.ceil((hi - lo) / GRID_RES).astype(int) + 1)
+        ii, jj = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+        xy = lo + GRID_RES * np.stack([ii.ravel(), jj.ravel()], axis=1)
+        dist, nearest = self.path.tree.query(xy, workers=-1)
+        dist = dist.reshape(shape).astype(np.float32)
+        road_z = self.path.points[nearest, 2].reshape(shape)
+        # Road bumps a few cm over a few metres; terrain relief grows away from the road.
+        bumps = 0.02 * smooth_field(rng, shape, 6.0 / GRID_RES)
+        relief = self.p.terrain_relief * smooth_field(rng, shape, 25.0 / GRID_RES)
+        away = np.clip((dist - self.edge - 1.0) / 12.0, 0.0, 1.0)
+        base = road_z + bumps + relief * away
+        return Ground(
+            lo,
+            base.astype(np.float32),
+            dist,
+            self.road_half,
+            self.sidewalk,
+            self.p.curb_height if self.sidewalk > 0 else 0.0,
+        )
+
+
+def build_scene(
+    traj: Trajectory,
+    style: str = "urban",
+    seed: int = 0,
+    *,
+    mount_height: float = 1.73,
+    dynamic: bool = True,
+    detail: bool = True,
+) -> Scene:
+    """Procedural scene around ``traj``. ``dynamic``: moving road users; ``detail``: recessed
+    windows, ledges and annexes (non-planar detail)."""
+    b = _SceneBuilder(traj, style, seed, mount_height, dynamic, detail)
+    ground = b.ground()
+    # Larger structures first, so smaller ones fill the gaps they leave.
+    b.buildings()
+    b.hedges_fences_walls()
+    b.guard_rails()
+    b.parked_cars()
+    b.poles_and_signs()
+    b.trees_and_bushes()
+    b.moving_actors()
+    boxes = b.boxes.build(0)
+    cyls = b.cyls.build(len(boxes))
+    ells = b.ells.build(len(boxes) + len(cyls))
+    return Scene(style, ground, boxes, cyls, ells)

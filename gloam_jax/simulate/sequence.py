@@ -1,0 +1,290 @@
+"""Simulate a LiDAR sequence and write it in the KITTI odometry layout.
+
+Output (``root`` is the dataset folder, ``NN`` the sequence id)::
+
+    root/sequences/NN/velodyne/%06d.bin     float32 x y z intensity, raw (not deskewed)
+    root/sequences/NN/labels/%06d.label     uint32 SemanticKITTI class id (low 16 bits)
+    root/sequences/NN/timestamps/%06d.npy   float32 per-point time (s) relative to the frame's
+                                             ground-truth time (mid-sweep), in [-0.05, 0.05]
+    root/sequences/NN/calib.txt             P0..P3 and Tr (Velodyne -> camera 0)
+    root/sequences/NN/times.txt             frame times (s), first frame at 0
+    root/sequences/NN/simulation.json       everything needed to regenerate the sequence
+    root/poses/NN.txt                       ground truth, camera-0 convention, first pose identity
+
+Ground truth: a frame's pose is the LiDAR pose at its mid-sweep time, when the scanner faces
+forward (+x), the moment KITTI's cameras are triggered. With motion distortion on, each
+column is cast from the pose at its own firing time and its points are left in that momentary
+sensor frame, as a raw scanner reports them; the per-point timestamps let a user deskew.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from gloam_jax import io
+from gloam_jax.simulate import raycast
+from gloam_jax.simulate.scene import REFLECTIVITY, Scene, build_scene
+from gloam_jax.simulate.sensors import SensorModel
+from gloam_jax.simulate.trajectory import Trajectory
+
+FORMAT_VERSION = 1
+
+# KITTI-like camera intrinsics (a 1241x376 image); odometry never uses them, readers expect them.
+_P0 = np.array(
+    [[707.0912, 0.0, 601.8873, 0.0], [0.0, 707.0912, 183.1104, 0.0], [0.0, 0.0, 1.0, 0.0]]
+)
+
+
+@dataclass(frozen=True)
+class ErrorSwitches:
+    """The real-world error sources, each on by default."""
+
+    motion_distortion: bool = True
+    moving_objects: bool = True
+    nonplanar_detail: bool = True
+    sensor_imperfections: bool = True
+
+
+@dataclass
+class FrameScan:
+    points: np.ndarray  # (N, 4) float32 x y z intensity, sensor frame at each point's time
+    labels: np.ndarray  # (N,) uint16
+    times: np.ndarray  # (N,) float32, s relative to mid-sweep
+
+
+class SweepSimulator:
+    """Casts the sweeps of one trajectory through one scene with one sensor."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        traj: Trajectory,
+        sensor: SensorModel,
+        seed: int,
+        switches: ErrorSwitches = ErrorSwitches(),
+    ) -> None:
+        self.scene, self.traj, self.seed, self.switches = scene, traj, seed, switches
+        self.sensor = sensor if switches.sensor_imperfections else sensor.without_errors()
+        W = self.sensor.num_columns
+        # Narrow sectors keep the primitives per sector few; they must tile the columns.
+        self.num_sectors = max(k for k in range(1, 101) if W % k == 0)
+        # Rays leave at the true elevation; points are reported along the nominal one.
+        self.dirs_true = self.sensor.directions(self.sensor.elevation_bias_deg)
+        self.dirs_nominal = self.sensor.directions(0.0)
+        beam_rng = np.random.default_rng([seed, 0xBEA5])
+        self.beam_offsets = beam_rng.normal(
+            0.0, self.sensor.beam_range_offset_std, self.sensor.num_beams
+        )
+        lut = np.zeros(256, np.float32)
+        for label, refl in REFLECTIVITY.items():
+            lut[label] = refl
+        self.reflectivity_lut = lut
+        self._kinds = (scene.boxes, scene.cylinders, scene.ellipsoids)
+        self._pads = [8, 8, 8]
+
+    def frame(self, i: int) -> FrameScan:
+        """Simulate frame ``i`` of the trajectory's window."""
+        sensor, W, B = self.sensor, self.sensor.num_columns, self.sensor.num_beams
+        t_frame = float(self.traj.frame_times[i])
+        T_frame = self.traj.poses_at(np.array([t_frame]))[0]
+        col_dt = sensor.column_times()
+        if self.switches.motion_distortion:
+            T_cols = self.traj.poses_at(t_frame + col_dt)
+            ray_dt = col_dt
+        else:
+            T_cols = np.repeat(T_frame[None], W, axis=0)
+            ray_dt = np.zeros(W)
+        origin = T_frame[:3, 3]
+        dirs = np.einsum("cij,cbj->cbi", T_cols[:, :3, :3], self.dirs_true)
+        origins = np.broadcast_to((T_cols[:, :3, 3] - origin)[:, None, :], dirs.shape)
+        S = self.num_sectors
+
+        def by_sector(a: np.ndarray) -> np.ndarray:
+            return np.ascontiguousarray(a.reshape(S, -1, *a.shape[2:]))
+
+        times = np.broadcast_to(ray_dt[:, None], (W, B))
+        ray_ids = (np.arange(W * B, dtype=np.uint64) + np.uint64(i) * np.uint64(W * B)).astype(
+            np.uint32
+        )
+        # World azimuths of each sector's first and last column (middle beam), and where the
+        # sensor was meanwhile, so each sector is tested only against what it can see.
+        cols = np.arange(W).reshape(S, -1)[:, [0, -1]]
+        mid = dirs[:, B // 2, :2]
+        sector_az = np.arctan2(mid[cols, 1], mid[cols, 0])
+        sector_origins = T_cols[cols, :2, 3].mean(axis=1)
+        prims = tuple(
+            raycast.sector_primitives(
+                p, origin, t_frame, sector_origins, sector_az, sensor.max_range, pad
+            )
+            for p, pad in zip(self._kinds, self._pads, strict=True)
+        )
+        self._pads = [p.valid.shape[1] for p in prims]  # only grows: few recompilations
+        slack = float(np.linalg.norm(T_cols[0, :3, 3] - T_cols[-1, :3, 3]))
+        ground = raycast.ground_window(self.scene, origin, sensor.max_range + slack + 2.0)
+        salt = np.uint32(hash_seed(self.seed, i) & 0xFFFFFFFF)
+        hits = raycast.cast_sweep(
+            by_sector(origins.astype(np.float32)),
+            by_sector(dirs.astype(np.float32)),
+            by_sector(times.astype(np.float32)),
+            by_sector(ray_ids.reshape(W, B)),
+            salt,
+            prims,
+            ground,
+            self.reflectivity_lut,
+            t_max=float(sensor.max_range + 5.0),
+        )
+        hits = [np.asarray(h).reshape(W, B) for h in hits]
+        return self._measure(i, *hits, col_dt)
+
+    def _measure(self, i, t, label, refl, cos_inc, col_dt) -> FrameScan:
+        """Apply the sensor's error model to true ranges (W, B) and build the point cloud."""
+        sensor = self.sensor
+        rng = np.random.default_rng([self.seed, i, 0x5CA9])
+        hit = np.isfinite(t)
+        r = np.where(hit, t, 0.0) + self.beam_offsets[None, :]
+        sigma = sensor.range_noise + sensor.range_noise_per_m * r
+        sigma = sigma / np.sqrt(np.maximum(cos_inc, 0.2))  # grazing returns are noisier
+        r = r + rng.normal(size=r.shape) * sigma
+        if sensor.mixed_pixel_prob > 0:
+            r = _mixed_pixels(r, hit, rng, sensor.mixed_pixel_prob, sensor.mixed_pixel_gap)
+        intensity = refl * (0.35 + 0.65 * cos_inc) * (1.0 - 0.3 * r / sensor.max_range)
+        intensity = np.clip(
+            intensity + rng.normal(0.0, 0.02, size=r.shape) * (sensor.dropout > 0), 0, 1
+        )
+        keep = hit & (r >= sensor.min_range) & (r <= sensor.max_range)
+        if sensor.dropout > 0:
+            weak = intensity * (1.0 - (r / sensor.max_range) ** 2) < 0.01
+            keep &= (rng.random(r.shape) >= sensor.dropout) & ~weak
+        xyz = r[..., None] * self.dirs_nominal
+        times = np.broadcast_to(col_dt[:, None], r.shape)
+        points = np.concatenate([xyz, intensity[..., None]], axis=-1)[keep].astype(np.float32)
+        return FrameScan(points, label[keep].astype(np.uint16), times[keep].astype(np.float32))
+
+
+def _mixed_pixels(r, hit, rng, prob, gap):
+    """At depth edges between neighbouring columns, some returns land between both surfaces."""
+    nxt = np.roll(r, -1, axis=0)
+    edge = hit & np.roll(hit, -1, axis=0) & (np.abs(nxt - r) > gap)
+    mix = edge & (rng.random(r.shape) < prob)
+    frac = rng.uniform(0.1, 0.9, size=r.shape)
+    return np.where(mix, r + frac * (nxt - r), r)
+
+
+def hash_seed(*parts: int) -> int:
+    digest = hashlib.blake2b(repr(parts).encode(), digest_size=8).digest()
+    return int.from_bytes(digest, "little")
+
+
+@dataclass(frozen=True)
+class SimulationConfig:
+    sequence: str
+    sensor: str
+    style: str
+    seed: int
+    trajectory: str
+    start: int
+    frames: int
+    switches: ErrorSwitches
+    num_beams: int
+    num_columns: int
+
+    def to_json(self) -> dict:
+        return {"format_version": FORMAT_VERSION, **asdict(self)}
+
+
+def write_sequence(
+    root: str | Path,
+    config: SimulationConfig,
+    traj: Trajectory,
+    sensor: SensorModel,
+    *,
+    progress: Callable[[int], None] | None = None,
+    scene: Scene | None = None,
+) -> Path:
+    """Simulate every frame of ``traj``'s window into ``root`` (KITTI layout), resumably.
+
+    Frames already on disk from the same configuration are kept; each file is written
+    atomically, so an interrupted run restarts where it stopped. Returns the sequence folder.
+    """
+    root = Path(root)
+    seq_dir = root / "sequences" / config.sequence
+    meta_path = seq_dir / "simulation.json"
+    meta = config.to_json()
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if old.get("config") != json.loads(json.dumps(meta)):
+            raise FileExistsError(
+                f"{meta_path}: holds a different simulation; choose another --out or sequence id"
+            )
+    if scene is None:
+        scene = build_scene(
+            traj,
+            config.style,
+            config.seed,
+            mount_height=sensor.mount_height,
+            dynamic=config.switches.moving_objects,
+            detail=config.switches.nonplanar_detail,
+        )
+    sim = SweepSimulator(scene, traj, sensor, config.seed, config.switches)
+    for sub in ("velodyne", "labels", "timestamps"):
+        (seq_dir / sub).mkdir(parents=True, exist_ok=True)
+    T = traj.frame_poses
+    T_rebased = np.linalg.inv(T[0]) @ T
+    io.write_kitti_poses(
+        root / "poses" / f"{config.sequence}.txt",
+        io.lidar_to_cam_poses(T_rebased, traj.Tr_cam_velo),
+    )
+    P = {f"P{k}": _P0.copy() for k in range(4)}
+    for k, baseline in ((1, -0.54), (3, -0.54)):
+        P[f"P{k}"][0, 3] = baseline * _P0[0, 0]
+    io.write_calib(seq_dir / "calib.txt", {**P, "Tr": traj.Tr_cam_velo})
+    times = traj.frame_times - traj.frame_times[0]
+    _atomic_text(seq_dir / "times.txt", "".join(f"{t:.6e}\n" for t in times))
+    counts = []
+    for i in range(traj.num_frames):
+        paths = _frame_paths(seq_dir, i)
+        if not all(p.exists() for p in paths):
+            scan = sim.frame(i)
+            io.write_labels(paths[1], scan.labels)
+            _atomic_npy(paths[2], scan.times)
+            io.write_scan_bin(paths[0], scan.points)  # last: its presence marks the frame done
+            counts.append(len(scan.points))
+        if progress is not None:
+            progress(i)
+    summary = {"config": meta, "source": traj.source, "Tr_cam_velo": traj.Tr_cam_velo.tolist()}
+    if counts:
+        summary["points_per_frame_this_run"] = {
+            "mean": float(np.mean(counts)),
+            "min": int(np.min(counts)),
+            "max": int(np.max(counts)),
+        }
+    _atomic_text(meta_path, json.dumps(summary, indent=2))
+    return seq_dir
+
+
+def _frame_paths(seq_dir: Path, i: int) -> tuple[Path, Path, Path]:
+    return (
+        seq_dir / "velodyne" / f"{i:06d}.bin",
+        seq_dir / "labels" / f"{i:06d}.label",
+        seq_dir / "timestamps" / f"{i:06d}.npy",
+    )
+
+
+def _atomic_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _atomic_npy(path: Path, array: np.ndarray) -> None:
+    tmp = path.with_name(path.name + ".tmp.npy")
+    np.save(tmp, array)
+    os.replace(tmp, path)
