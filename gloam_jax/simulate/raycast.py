@@ -26,7 +26,7 @@ from gloam_jax.simulate.scene import (
     Scene,
 )
 
-MARCH_STEPS = 40  # ground samples per ray, geometrically spaced
+MARCH_STEPS = 32  # ground samples per ray, geometrically spaced
 BISECT_STEPS = 10
 _FAR = 1e9
 
@@ -50,9 +50,9 @@ class Prims(NamedTuple):
 
 class GroundGrid(NamedTuple):
     origin: jax.Array  # (2,)
-    base: jax.Array  # (NX, NY)
-    dist: jax.Array  # (NX, NY)
+    fields: jax.Array  # (NX, NY, 2): base height, distance to the driven path
     params: jax.Array  # (3,) road half width, sidewalk width, curb height
+    z_range: jax.Array  # (2,) lowest and highest ground in the crop
 
 
 class Hits(NamedTuple):
@@ -64,15 +64,16 @@ class Hits(NamedTuple):
     cos_incidence: jax.Array
 
 
-def _hash_uniform(a: jax.Array, b: jax.Array, salt: jax.Array) -> jax.Array:
-    """Deterministic uniform [0, 1) from two uint32 ids (a small integer mixing hash)."""
+def _hash_uniforms(a: jax.Array, b: jax.Array, salt: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Two deterministic uniforms in [0, 1) (12 bits each) from two uint32 ids: an integer hash."""
     x = a * jnp.uint32(0x9E3779B1) ^ (b * jnp.uint32(0x85EBCA77)) ^ salt
-    x = x ^ (x >> 16)
-    x = x * jnp.uint32(0x7FEB352D)
     x = x ^ (x >> 15)
-    x = x * jnp.uint32(0x846CA68B)
-    x = x ^ (x >> 16)
-    return (x >> 8).astype(jnp.float32) * (1.0 / (1 << 24))
+    x = x * jnp.uint32(0x2C1B3C6D)
+    x = x ^ (x >> 12)
+    x = x * jnp.uint32(0x297A2D39)
+    x = x ^ (x >> 15)
+    scale = 1.0 / 4096.0
+    return (x >> 20).astype(jnp.float32) * scale, ((x >> 4) & 0xFFF).astype(jnp.float32) * scale
 
 
 def _to_local(o, d, tr, p: Prims):
@@ -107,8 +108,7 @@ def _active(tr, p: Prims):
 
 def _porous(t_in, t_out, ray_id, p: Prims, salt, depth):
     """Foliage: a ray passes with the primitive's porosity, else returns inside the volume."""
-    u1 = _hash_uniform(ray_id[:, None], p.uid, salt)
-    u2 = _hash_uniform(ray_id[:, None], p.uid, salt ^ jnp.uint32(0x5BD1E995))
+    u1, u2 = _hash_uniforms(ray_id[:, None], p.uid, salt)
     passes = u1 < p.porosity
     t = jnp.where(p.porosity > 0, t_in + depth * (t_out - t_in) * u2 * u2, t_in)
     return t, passes
@@ -178,41 +178,54 @@ def ellipsoid_hits(o, d, tr, ray_id, salt, p: Prims):
     return jnp.where(hit, t, jnp.inf), _world_normal(n_local, p)
 
 
-def _bilinear(grid, xy, g: GroundGrid):
+def _ground_fields(xy, g: GroundGrid):
+    """Bilinear (base height, path distance) at xy: (..., 2) -> (..., 2)."""
     f = (xy - g.origin) / GRID_RES
-    f = jnp.clip(f, 0.0, jnp.array(grid.shape, f.dtype) - 1.001)
+    f = jnp.clip(f, 0.0, jnp.array(g.fields.shape[:2], f.dtype) - 1.001)
     i0 = jnp.floor(f).astype(jnp.int32)
-    w = f - i0
+    w = (f - i0)[..., None, :]
     i, j = i0[..., 0], i0[..., 1]
-    return (
-        (1 - w[..., 0]) * (1 - w[..., 1]) * grid[i, j]
-        + w[..., 0] * (1 - w[..., 1]) * grid[i + 1, j]
-        + (1 - w[..., 0]) * w[..., 1] * grid[i, j + 1]
-        + w[..., 0] * w[..., 1] * grid[i + 1, j + 1]
-    )
+    grid = g.fields
+    return (1 - w[..., 0]) * ((1 - w[..., 1]) * grid[i, j] + w[..., 1] * grid[i, j + 1]) + w[
+        ..., 0
+    ] * ((1 - w[..., 1]) * grid[i + 1, j] + w[..., 1] * grid[i + 1, j + 1])
 
 
 def ground_height(xy, g: GroundGrid):
-    road_half, _, curb = g.params[0], g.params[1], g.params[2]
-    x = jnp.clip((_bilinear(g.dist, xy, g) - road_half) / 0.08, 0.0, 1.0)
-    return _bilinear(g.base, xy, g) + curb * x * x * (3 - 2 * x)
+    fields = _ground_fields(xy, g)
+    road_half, curb = g.params[0], g.params[2]
+    x = jnp.clip((fields[..., 1] - road_half) / 0.08, 0.0, 1.0)
+    return fields[..., 0] + curb * x * x * (3 - 2 * x)
 
 
 def ground_hits(o, d, g: GroundGrid, t_max: float):
-    """March along each ray to the first point below the ground, then bisect: (R,) distances."""
-    ts = jnp.geomspace(0.3, t_max, MARCH_STEPS, dtype=o.dtype)
+    """March along each ray to the first point below the ground, then bisect: (R,) distances.
+
+    Each ray is marched only over the stretch where its height lies within the ground's
+    height range, so the samples are dense where a hit is possible.
+    """
+    oz, dz = o[:, 2], d[:, 2]
+    safe = jnp.where(jnp.abs(dz) < 1e-6, -1e-6, dz)
+    z_lo, z_hi = g.z_range[0], g.z_range[1]
+    t_lo = jnp.where(dz < -1e-6, (z_hi - oz) / safe, 0.0)
+    t_hi = jnp.where(
+        dz < -1e-6, (z_lo - oz) / safe, jnp.where(dz > 1e-6, (z_hi - oz) / safe, t_max)
+    )
+    t_lo = jnp.maximum(t_lo, 0.3)
+    t_hi = jnp.clip(t_hi, t_lo * 1.001, t_max)
+    # Quadratic spacing: dense near the start, where steep rays meet the ground.
+    frac = jnp.linspace(0.0, 1.0, MARCH_STEPS, dtype=o.dtype)[:, None] ** 2
+    ts = t_lo + (t_hi - t_lo) * frac  # (MARCH_STEPS, R)
 
     def below(t):
         p = o + t[..., None] * d
         return p[..., 2] < ground_height(p[..., :2], g)
 
-    under = jax.vmap(below, in_axes=0, out_axes=1)(
-        jnp.broadcast_to(ts[:, None], (MARCH_STEPS, o.shape[0]))
-    )
+    under = jax.vmap(below, in_axes=0, out_axes=1)(ts)
     first = jnp.argmax(under, axis=1)
     found = jnp.any(under, axis=1) & (first > 0)
-    hi = ts[first]
-    lo = ts[jnp.maximum(first - 1, 0)]
+    hi = t_lo + (t_hi - t_lo) * frac[first, 0]
+    lo = t_lo + (t_hi - t_lo) * frac[jnp.maximum(first - 1, 0), 0]
 
     def bisect(_, bounds):
         lo, hi = bounds
@@ -234,7 +247,7 @@ def _ground_normal_and_label(p, g: GroundGrid):
     )
     n = jnp.stack([-dx / (2 * e), -dy / (2 * e), jnp.ones_like(dx)], -1)
     n = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
-    dist = _bilinear(g.dist, p[..., :2], g)
+    dist = _ground_fields(p[..., :2], g)[..., 1]
     road_half, sidewalk = g.params[0], g.params[1]
     label = jnp.where(
         dist < road_half, ROAD, jnp.where(dist < road_half + sidewalk, SIDEWALK, TERRAIN)
@@ -384,11 +397,12 @@ def ground_window(scene: Scene, origin: np.ndarray, half_extent: float) -> Groun
     base = np.full((n, n), -1e3, np.float32)
     dist = np.full((n, n), 1e3, np.float32)
     crop_b, crop_d = g.base_height[sl], g.path_distance[sl]
+    z_range = [crop_b.min() - origin[2] - 0.05, crop_b.max() - origin[2] + g.curb_height + 0.05]
     base[: crop_b.shape[0], : crop_b.shape[1]] = crop_b - origin[2]
     dist[: crop_d.shape[0], : crop_d.shape[1]] = crop_d
     return GroundGrid(
         origin=(g.origin + start * GRID_RES - origin[:2]).astype(np.float32),
-        base=base,
-        dist=dist,
+        fields=np.stack([base, dist], axis=-1),
         params=np.array([g.road_half_width, g.sidewalk_width, g.curb_height], np.float32),
+        z_range=np.array(z_range, np.float32),
     )

@@ -16,6 +16,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 from scipy.spatial import cKDTree
 
+from gloam_jax.errors import InputError
 from gloam_jax.simulate.trajectory import Trajectory
 
 # SemanticKITTI class ids (labels/*.label, low 16 bits).
@@ -314,7 +315,9 @@ class _SceneBuilder:
         detail: bool,
     ) -> None:
         if style not in STYLES:
-            raise ValueError(f"unknown scene style {style!r}; choose one of {', '.join(STYLES)}")
+            raise InputError(
+                None, f"unknown scene style {style!r}; choose one of {', '.join(STYLES)}"
+            )
         self.traj, self.style, self.p = traj, style, STYLES[style]
         self.rng = np.random.default_rng(seed)
         self.path = _Path(traj, mount_height)

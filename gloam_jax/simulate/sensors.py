@@ -13,6 +13,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from gloam_jax.errors import InputError
+
 
 @dataclass(frozen=True)
 class SensorModel:
@@ -117,7 +119,7 @@ def get_sensor(
 ) -> SensorModel:
     """A preset by name, optionally thinned (every k-th beam, fewer columns) for quick tests."""
     if name not in SENSORS:
-        raise ValueError(f"unknown sensor {name!r}; choose one of {', '.join(SENSORS)}")
+        raise InputError(None, f"unknown sensor {name!r}; choose one of {', '.join(SENSORS)}")
     sensor = SENSORS[name]
     if num_beams is not None:
         idx = np.round(np.linspace(0, sensor.num_beams - 1, num_beams)).astype(int)

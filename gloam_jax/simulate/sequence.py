@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from gloam_jax import io
+from gloam_jax.errors import InputError
 from gloam_jax.simulate import raycast
 from gloam_jax.simulate.scene import REFLECTIVITY, Scene, build_scene
 from gloam_jax.simulate.sensors import SensorModel
@@ -89,18 +90,42 @@ class SweepSimulator:
         self._kinds = (scene.boxes, scene.cylinders, scene.ellipsoids)
         self._pads = [8, 8, 8]
 
+    def _sweep(self, i: int):
+        """Frame time, mid-sweep pose, per-column poses (W, 4, 4) and per-column times."""
+        t_frame = float(self.traj.frame_times[i])
+        T_frame = self.traj.poses_at(np.array([t_frame]))[0]
+        col_dt = self.sensor.column_times()
+        if self.switches.motion_distortion:
+            return t_frame, T_frame, self.traj.poses_at(t_frame + col_dt), col_dt
+        return t_frame, T_frame, np.repeat(T_frame[None], len(col_dt), axis=0), 0.0 * col_dt
+
+    def _sector_prims(self, t_frame, T_frame, T_cols, dirs, pads):
+        """Per-sector primitive sets; each sector sees only what lies in its azimuth range."""
+        S, B = self.num_sectors, self.sensor.num_beams
+        cols = np.arange(len(T_cols)).reshape(S, -1)[:, [0, -1]]
+        mid = dirs[:, B // 2, :2]
+        sector_az = np.arctan2(mid[cols, 1], mid[cols, 0])
+        sector_origins = T_cols[cols, :2, 3].mean(axis=1)
+        return tuple(
+            raycast.sector_primitives(
+                p, T_frame[:3, 3], t_frame, sector_origins, sector_az, self.sensor.max_range, pad
+            )
+            for p, pad in zip(self._kinds, pads, strict=True)
+        )
+
+    def plan_padding(self, frames: np.ndarray) -> None:
+        """Size the per-sector primitive buffers for the busiest of ``frames`` up front, so
+        the ray caster compiles once instead of each time a busier frame comes along."""
+        for i in frames:
+            t_frame, T_frame, T_cols, _ = self._sweep(int(i))
+            dirs = np.einsum("cij,cbj->cbi", T_cols[:, :3, :3], self.dirs_true)
+            prims = self._sector_prims(t_frame, T_frame, T_cols, dirs, self._pads)
+            self._pads = [p.valid.shape[1] for p in prims]
+
     def frame(self, i: int) -> FrameScan:
         """Simulate frame ``i`` of the trajectory's window."""
         sensor, W, B = self.sensor, self.sensor.num_columns, self.sensor.num_beams
-        t_frame = float(self.traj.frame_times[i])
-        T_frame = self.traj.poses_at(np.array([t_frame]))[0]
-        col_dt = sensor.column_times()
-        if self.switches.motion_distortion:
-            T_cols = self.traj.poses_at(t_frame + col_dt)
-            ray_dt = col_dt
-        else:
-            T_cols = np.repeat(T_frame[None], W, axis=0)
-            ray_dt = np.zeros(W)
+        t_frame, T_frame, T_cols, ray_dt = self._sweep(i)
         origin = T_frame[:3, 3]
         dirs = np.einsum("cij,cbj->cbi", T_cols[:, :3, :3], self.dirs_true)
         origins = np.broadcast_to((T_cols[:, :3, 3] - origin)[:, None, :], dirs.shape)
@@ -113,21 +138,10 @@ class SweepSimulator:
         ray_ids = (np.arange(W * B, dtype=np.uint64) + np.uint64(i) * np.uint64(W * B)).astype(
             np.uint32
         )
-        # World azimuths of each sector's first and last column (middle beam), and where the
-        # sensor was meanwhile, so each sector is tested only against what it can see.
-        cols = np.arange(W).reshape(S, -1)[:, [0, -1]]
-        mid = dirs[:, B // 2, :2]
-        sector_az = np.arctan2(mid[cols, 1], mid[cols, 0])
-        sector_origins = T_cols[cols, :2, 3].mean(axis=1)
-        prims = tuple(
-            raycast.sector_primitives(
-                p, origin, t_frame, sector_origins, sector_az, sensor.max_range, pad
-            )
-            for p, pad in zip(self._kinds, self._pads, strict=True)
-        )
+        prims = self._sector_prims(t_frame, T_frame, T_cols, dirs, self._pads)
         self._pads = [p.valid.shape[1] for p in prims]  # only grows: few recompilations
-        slack = float(np.linalg.norm(T_cols[0, :3, 3] - T_cols[-1, :3, 3]))
-        ground = raycast.ground_window(self.scene, origin, sensor.max_range + slack + 2.0)
+        # A fixed crop size (static shape, one compilation) that covers a sweep at up to 50 m/s.
+        ground = raycast.ground_window(self.scene, origin, sensor.max_range + 7.0)
         salt = np.uint32(hash_seed(self.seed, i) & 0xFFFFFFFF)
         hits = raycast.cast_sweep(
             by_sector(origins.astype(np.float32)),
@@ -141,7 +155,7 @@ class SweepSimulator:
             t_max=float(sensor.max_range + 5.0),
         )
         hits = [np.asarray(h).reshape(W, B) for h in hits]
-        return self._measure(i, *hits, col_dt)
+        return self._measure(i, *hits, ray_dt)
 
     def _measure(self, i, t, label, refl, cos_inc, col_dt) -> FrameScan:
         """Apply the sensor's error model to true ranges (W, B) and build the point cloud."""
@@ -216,13 +230,11 @@ def write_sequence(
     root = Path(root)
     seq_dir = root / "sequences" / config.sequence
     meta_path = seq_dir / "simulation.json"
-    meta = config.to_json()
-    if meta_path.exists():
-        old = json.loads(meta_path.read_text())
-        if old.get("config") != json.loads(json.dumps(meta)):
-            raise FileExistsError(
-                f"{meta_path}: holds a different simulation; choose another --out or sequence id"
-            )
+    meta = json.loads(json.dumps(config.to_json()))
+    if meta_path.exists() and json.loads(meta_path.read_text()).get("config") != meta:
+        raise InputError(meta_path, "holds a different simulation; choose another output folder")
+    summary = {"config": meta, "source": traj.source, "Tr_cam_velo": traj.Tr_cam_velo.tolist()}
+    _atomic_text(meta_path, json.dumps(summary, indent=2))
     if scene is None:
         scene = build_scene(
             traj,
@@ -233,21 +245,19 @@ def write_sequence(
             detail=config.switches.nonplanar_detail,
         )
     sim = SweepSimulator(scene, traj, sensor, config.seed, config.switches)
+    sim.plan_padding(np.unique(np.linspace(0, traj.num_frames - 1, 12).astype(int)))
     for sub in ("velodyne", "labels", "timestamps"):
         (seq_dir / sub).mkdir(parents=True, exist_ok=True)
     T = traj.frame_poses
     T_rebased = np.linalg.inv(T[0]) @ T
-    io.write_kitti_poses(
-        root / "poses" / f"{config.sequence}.txt",
-        io.lidar_to_cam_poses(T_rebased, traj.Tr_cam_velo),
-    )
+    P_cam = io.lidar_to_cam_poses(T_rebased, traj.Tr_cam_velo)
+    io.write_kitti_poses(root / "poses" / f"{config.sequence}.txt", P_cam)
     P = {f"P{k}": _P0.copy() for k in range(4)}
     for k, baseline in ((1, -0.54), (3, -0.54)):
         P[f"P{k}"][0, 3] = baseline * _P0[0, 0]
     io.write_calib(seq_dir / "calib.txt", {**P, "Tr": traj.Tr_cam_velo})
     times = traj.frame_times - traj.frame_times[0]
     _atomic_text(seq_dir / "times.txt", "".join(f"{t:.6e}\n" for t in times))
-    counts = []
     for i in range(traj.num_frames):
         paths = _frame_paths(seq_dir, i)
         if not all(p.exists() for p in paths):
@@ -255,16 +265,14 @@ def write_sequence(
             io.write_labels(paths[1], scan.labels)
             _atomic_npy(paths[2], scan.times)
             io.write_scan_bin(paths[0], scan.points)  # last: its presence marks the frame done
-            counts.append(len(scan.points))
         if progress is not None:
             progress(i)
-    summary = {"config": meta, "source": traj.source, "Tr_cam_velo": traj.Tr_cam_velo.tolist()}
-    if counts:
-        summary["points_per_frame_this_run"] = {
-            "mean": float(np.mean(counts)),
-            "min": int(np.min(counts)),
-            "max": int(np.max(counts)),
-        }
+    counts = [_frame_paths(seq_dir, i)[0].stat().st_size // 16 for i in range(traj.num_frames)]
+    summary["points_per_frame"] = {
+        "mean": float(np.mean(counts)),
+        "min": int(np.min(counts)),
+        "max": int(np.max(counts)),
+    }
     _atomic_text(meta_path, json.dumps(summary, indent=2))
     return seq_dir
 

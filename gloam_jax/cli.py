@@ -1,0 +1,269 @@
+"""The ``gloam`` command line: simulate, eval, demo."""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import time
+from collections.abc import Callable
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated, TypeVar
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from gloam_jax import __version__
+from gloam_jax.errors import InputError
+
+app = typer.Typer(
+    help="gloam-jax: learned GICP LiDAR odometry in JAX, with a LiDAR simulator and KITTI tools.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+console = Console()
+err_console = Console(stderr=True, soft_wrap=True)
+F = TypeVar("F", bound=Callable)
+
+
+def _user_errors(fn: F) -> F:
+    """Report bad input as one line and exit with status 2, instead of a traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except InputError as err:
+            err_console.print(f"[red]error:[/red] {err}", highlight=False)
+            raise typer.Exit(2) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _version(value: bool) -> None:
+    if value:
+        console.print(f"gloam-jax {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")
+    ] = False,
+) -> None:
+    """gloam-jax command line."""
+
+
+def _progress() -> Progress:
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]}"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+    )
+
+
+def _run_simulation(out: Path, frames: int, **kwargs) -> tuple[Path, float]:
+    from gloam_jax.simulate import simulate as run_simulate
+
+    t0 = time.perf_counter()
+    with _progress() as bar:
+        task = bar.add_task("simulating", total=frames, rate="")
+
+        def step(i: int) -> None:
+            fps = (i + 1) / max(time.perf_counter() - t0, 1e-9)
+            bar.update(task, completed=i + 1, rate=f"{fps:.2f} frames/s")
+
+        seq_dir = run_simulate(out, frames=frames, progress=step, **kwargs)
+    return seq_dir, time.perf_counter() - t0
+
+
+@app.command(
+    epilog=(
+        "Examples:\n\n"
+        "  gloam simulate data/sim --frames 100\n\n"
+        "  gloam simulate data/sim --trajectory ../shared/data/kitti_gt_poses/07.txt "
+        "--start 0 --frames 300 --style suburban --sequence 07 --preview\n\n"
+        "  gloam simulate data/sim --sensor vlp16 --no-motion-distortion --no-sensor-errors"
+    )
+)
+@_user_errors
+def simulate(
+    out: Annotated[Path, typer.Argument(help="Dataset root; written as OUT/sequences/NN/...")],
+    trajectory: Annotated[
+        Path | None,
+        typer.Option(help="KITTI pose file to drive along (camera-0 poses); default: procedural."),
+    ] = None,
+    start: Annotated[int, typer.Option(help="First pose of the window.")] = 0,
+    frames: Annotated[int, typer.Option(min=2, help="Number of scans.")] = 100,
+    sensor: Annotated[str, typer.Option(help="hdl64, vlp16 or os1-64.")] = "hdl64",
+    style: Annotated[str, typer.Option(help="urban, suburban or highway.")] = "urban",
+    seed: Annotated[int, typer.Option(help="Scene and noise seed (output is deterministic).")] = 0,
+    sequence: Annotated[str, typer.Option(help="Sequence id to write.")] = "00",
+    motion_distortion: Annotated[
+        bool, typer.Option(help="Cast each column from its own pose (raw, skewed sweeps).")
+    ] = True,
+    moving_objects: Annotated[
+        bool, typer.Option(help="Moving cars, cyclists, pedestrians.")
+    ] = True,
+    detail: Annotated[
+        bool, typer.Option(help="Non-planar detail: window recesses, ledges, annexes.")
+    ] = True,
+    sensor_errors: Annotated[
+        bool,
+        typer.Option(help="Elevation bias, per-beam offsets, range noise, mixed pixels, dropout."),
+    ] = True,
+    beams: Annotated[
+        int | None, typer.Option(help="Keep only this many beams (quick runs).")
+    ] = None,
+    columns: Annotated[int | None, typer.Option(help="Azimuth steps per sweep.")] = None,
+    preview: Annotated[bool, typer.Option(help="Write bird's-eye PNGs to NN/preview/.")] = False,
+) -> None:
+    """Simulate a LiDAR sequence with ground truth, in the KITTI odometry layout."""
+    from gloam_jax.simulate import ErrorSwitches
+
+    switches = ErrorSwitches(motion_distortion, moving_objects, detail, sensor_errors)
+    seq_dir, elapsed = _run_simulation(
+        out, frames, trajectory=trajectory, start=start, sensor=sensor, style=style, seed=seed,
+        sequence=sequence, switches=switches, num_beams=beams, num_columns=columns,
+    )  # fmt: skip
+    meta = json.loads((seq_dir / "simulation.json").read_text())
+    ppf = meta["points_per_frame"]
+    console.print(
+        f"wrote {frames} frames to {seq_dir} in {elapsed:.1f} s ({frames / elapsed:.2f} frames/s); "
+        f"points per frame: mean {ppf['mean']:.0f}, min {ppf['min']}, max {ppf['max']}"
+    )
+    if preview:
+        from gloam_jax.io import KittiSequence
+        from gloam_jax.simulate.preview import render_previews
+
+        paths = render_previews(KittiSequence(out, sequence), seq_dir / "preview")
+        console.print("previews: " + ", ".join(str(p) for p in paths))
+
+
+def _metrics_table(result: dict, title: str) -> Table:
+    table = Table(title=title)
+    table.add_column("segment (m)", justify="right")
+    table.add_column("t_err (%)", justify="right")
+    table.add_column("r_err (deg/100 m)", justify="right")
+    table.add_column("segments", justify="right")
+    for length, row in result["per_length"].items():
+        table.add_row(
+            length,
+            f"{row['t_err_percent']:.3f}",
+            f"{row['r_err_deg_per_100m']:.3f}",
+            str(row["num_segments"]),
+        )
+    table.add_row(
+        "[bold]all",
+        f"[bold]{result['t_err_percent']:.3f}",
+        f"[bold]{result['r_err_deg_per_100m']:.3f}",
+        f"[bold]{result['num_segments']}",
+    )
+    return table
+
+
+def _write_json(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2))
+    os.replace(tmp, path)
+
+
+@app.command(
+    name="eval",
+    epilog=(
+        "Examples:\n\n"
+        "  gloam eval data/sim/poses/00.txt results/latest/00_poses_kitti.txt\n\n"
+        "  gloam eval GT.txt EST.txt --json metrics.json --plot errors.png"
+    ),
+)
+@_user_errors
+def eval_(
+    gt: Annotated[Path, typer.Argument(help="Ground-truth KITTI pose file.")],
+    est: Annotated[Path, typer.Argument(help="Estimated KITTI pose file (same length).")],
+    json_out: Annotated[Path | None, typer.Option("--json", help="Write the metrics here.")] = None,
+    plot: Annotated[Path | None, typer.Option(help="Write a trajectory/error PNG here.")] = None,
+    precision: Annotated[
+        str, typer.Option(help="devkit (official float32 numbers) or float64 (exact).")
+    ] = "devkit",
+) -> None:
+    """Score a trajectory exactly as the KITTI odometry devkit does (RTE), plus ATE."""
+    from gloam_jax import io, metrics
+
+    if precision not in ("devkit", "float64"):
+        raise InputError(None, f"--precision must be devkit or float64, not {precision!r}")
+    gt_poses, est_poses = io.read_kitti_poses(gt), io.read_kitti_poses(est)
+    if len(gt_poses) != len(est_poses):
+        raise InputError(est, f"{len(est_poses)} poses vs {len(gt_poses)} in {gt}")
+    result = metrics.evaluate(gt_poses, est_poses, precision=precision, source=str(est))
+    console.print(_metrics_table(result, f"{est.name} vs {gt.name}"))
+    ate = result["ate"]
+    console.print(f"ATE (SE(3)-aligned): rmse {ate['rmse']:.3f} m, max {ate['max']:.3f} m")
+    if json_out is not None:
+        _write_json(json_out, result)
+    if plot is not None:
+        metrics.plot_evaluation(gt_poses, est_poses, None, plot, title=est.name)
+
+
+def _cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "gloam-jax"
+
+
+def constant_velocity_guess(T_first: np.ndarray, T_second: np.ndarray, n: int) -> np.ndarray:
+    """Poses that keep the first step's motion for ever: (n, 4, 4)."""
+    delta = np.linalg.inv(T_first) @ T_second
+    poses = [T_first]
+    for _ in range(n - 1):
+        poses.append(poses[-1] @ delta)
+    return np.stack(poses)
+
+
+@app.command(epilog="Example:\n\n  gloam demo --frames 150 --out results")
+@_user_errors
+def demo(
+    frames: Annotated[
+        int, typer.Option(min=20, help="Scans to simulate (>100 m of driving).")
+    ] = 150,
+    out: Annotated[Path, typer.Option(help="Results folder (a timestamped run inside).")] = Path(
+        "results"
+    ),
+    seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
+) -> None:
+    """Simulate a short urban drive (cached), score a constant-velocity guess against it."""
+    from gloam_jax import io, metrics
+
+    data = _cache_dir() / f"demo-seed{seed}"
+    seq_dir, elapsed = _run_simulation(data, frames, seed=seed, style="urban", sequence="00")
+    console.print(f"simulated sequence: {seq_dir} ({elapsed:.1f} s; cached for the next run)")
+    seq = io.KittiSequence(data, "00")
+    gt = seq.gt_poses_cam
+    est = constant_velocity_guess(gt[0], gt[1], len(gt))
+    run_dir = out / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    io.write_kitti_poses(run_dir / "00_poses_kitti.txt", est)
+    io.write_tum_poses(run_dir / "00_poses_tum.txt", seq.times, est)
+    result = metrics.evaluate(gt, est)
+    _write_json(run_dir / "metrics.json", result)
+    metrics.plot_evaluation(gt, est, None, run_dir / "trajectory.png", title="constant velocity")
+    latest = out / "latest"
+    if latest.is_symlink() or latest.exists():
+        latest.unlink()
+    latest.symlink_to(run_dir.name)
+    console.print(_metrics_table(result, "constant-velocity guess vs ground truth"))
+    console.print(f"results: {run_dir}")
+
+
+if __name__ == "__main__":
+    app()
