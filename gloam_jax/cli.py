@@ -174,10 +174,9 @@ def _metrics_table(result: dict, title: str) -> Table:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2))
-    os.replace(tmp, path)
+    from gloam_jax.io import write_atomic
+
+    write_atomic(path, json.dumps(data, indent=2))
 
 
 @app.command(

@@ -19,8 +19,21 @@ from jax import Array
 from jax.typing import ArrayLike
 
 # Below this squared angle the closed forms lose precision (float32 cancellation), so the
-# Taylor series are used instead; at 1e-2 the first omitted term is below 1e-15.
+# Taylor series in theta^2 below are used instead; at 1e-2 their first omitted terms are below
+# 1e-15.
 _SMALL_ANGLE_SQ = 1e-2
+_SIN_OVER_T = (1.0, -1 / 6, 1 / 120, -1 / 5040, 1 / 362880)  # sin(t) / t
+_ONE_MINUS_COS = (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800)  # (1 - cos t) / t^2
+_T_MINUS_SIN = (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800)  # (t - sin t) / t^3
+_V_INVERSE = (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160)  # (1 - (t/2)cot(t/2)) / t^2
+
+
+def _series(x: Array, coefficients: tuple[float, ...]) -> Array:
+    """sum_k c_k x^k by Horner's rule."""
+    out = jnp.full_like(x, coefficients[-1])
+    for c in coefficients[-2::-1]:
+        out = out * x + c
+    return out
 
 
 def hat(phi: ArrayLike) -> Array:
@@ -52,13 +65,9 @@ def _angle_coefficients(phi: Array) -> tuple[Array, Array, Array, Array]:
     t2 = jnp.where(small, 1.0, theta_sq)
     t = jnp.sqrt(t2)
     half_sinc = jnp.sin(0.5 * t) / (0.5 * t)
-    a = jnp.where(small, 1.0 - theta_sq / 6.0 + theta_sq**2 / 120.0, jnp.sin(t) / t)
-    b = jnp.where(small, 0.5 - theta_sq / 24.0 + theta_sq**2 / 720.0, 0.5 * half_sinc * half_sinc)
-    c = jnp.where(
-        small,
-        1.0 / 6.0 - theta_sq / 120.0 + theta_sq**2 / 5040.0 - theta_sq**3 / 362880.0,
-        (t - jnp.sin(t)) / (t2 * t),
-    )
+    a = jnp.where(small, _series(theta_sq, _SIN_OVER_T), jnp.sin(t) / t)
+    b = jnp.where(small, _series(theta_sq, _ONE_MINUS_COS), 0.5 * half_sinc * half_sinc)
+    c = jnp.where(small, _series(theta_sq, _T_MINUS_SIN), (t - jnp.sin(t)) / (t2 * t))
     return theta_sq, a, b, c
 
 
@@ -151,7 +160,7 @@ def _v_inverse(phi: Array) -> Array:
     half = 0.5 * jnp.sqrt(t2)
     d = jnp.where(
         small,
-        1.0 / 12.0 + theta_sq / 720.0 + theta_sq**2 / 30240.0 + theta_sq**3 / 1209600.0,
+        _series(theta_sq, _V_INVERSE),
         (1.0 - half * jnp.cos(half) / jnp.sin(half)) / t2,
     )
     K = hat(phi)

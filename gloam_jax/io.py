@@ -89,9 +89,12 @@ def _read_text(source: PathLike | IO[str]) -> tuple[str, str]:
         raise InputError(source, "not a text file (invalid UTF-8)") from None
 
 
-def _atomic_write(path: PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temp file in the same folder and ``os.replace``."""
+def write_atomic(path: PathLike, data: bytes | str) -> None:
+    """Write ``data`` to ``path`` via a temp file in the same folder and ``os.replace``, so
+    readers (and resumed jobs) never see a half-written file. Creates parent folders."""
     p = Path(path)
+    if isinstance(data, str):
+        data = data.encode("utf-8")
     try:
         p.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
@@ -178,7 +181,7 @@ def read_kitti_poses(path_or_file: PathLike | IO[str]) -> np.ndarray:
 def write_kitti_poses(path: PathLike, poses: np.ndarray) -> None:
     """Write ``(N, 4, 4)`` poses as a KITTI pose file (readable by ``evo_traj kitti``)."""
     top = _as_poses(path, poses)
-    _atomic_write(path, _format_rows(top.reshape(-1, 12), _FLOAT_FMT))
+    write_atomic(path, _format_rows(top.reshape(-1, 12), _FLOAT_FMT))
 
 
 def read_tum_poses(path_or_file: PathLike | IO[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -210,7 +213,7 @@ def write_tum_poses(path: PathLike, times: np.ndarray, poses: np.ndarray) -> Non
         raise InputError(path, "times contain NaN or infinite values")
     quats = Rotation.from_matrix(top[:, :, :3]).as_quat(canonical=True)
     rows = np.column_stack([times, top[:, :, 3], quats])
-    _atomic_write(path, _format_rows(rows, " ".join([_FLOAT_FMT] * 8)))
+    write_atomic(path, _format_rows(rows, " ".join([_FLOAT_FMT] * 8)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -284,7 +287,7 @@ def write_calib(path: PathLike, entries: dict[str, np.ndarray]) -> None:
             # KITTI tools expect 12 numbers for Tr; read_calib restores the bottom row.
             value = value[:3]
         lines.append(f"{key}: " + " ".join(f"{v:.12e}" for v in value.ravel()))
-    _atomic_write(path, ("\n".join(lines) + "\n").encode("ascii"))
+    write_atomic(path, ("\n".join(lines) + "\n").encode("ascii"))
 
 
 def read_times(path: PathLike) -> np.ndarray:
@@ -329,7 +332,7 @@ def write_scan_bin(path: PathLike, points: np.ndarray) -> None:
         raise InputError(path, f"points must have shape (N, 4), got {points.shape}")
     if points.shape[1] == 3:
         points = np.column_stack([points, np.zeros(len(points), np.float32)])
-    _atomic_write(path, np.ascontiguousarray(points, dtype="<f4").tobytes())
+    write_atomic(path, np.ascontiguousarray(points, dtype="<f4").tobytes())
 
 
 def _read_bin(path: PathLike) -> np.ndarray:
@@ -568,7 +571,7 @@ def write_labels(
         if ids.size and (ids.dtype.kind not in "iu" or ids.min() < 0 or ids.max() > 0xFFFF):
             raise InputError(path, f"{what} ids must be integers in [0, 65535]")
     packed = (inst.astype(np.uint32) << 16) | cls.astype(np.uint32)
-    _atomic_write(path, packed.astype("<u4").tobytes())
+    write_atomic(path, packed.astype("<u4").tobytes())
 
 
 # --------------------------------------------------------------------------------------------

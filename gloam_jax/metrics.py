@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
+from io import BytesIO
 from pathlib import Path
 from typing import Any, Literal
 
@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gloam_jax.errors import InputError
+from gloam_jax.io import write_atomic
 
 __all__ = [
     "DEFAULT_LENGTHS",
@@ -439,15 +440,7 @@ def plot_evaluation(
         fig.suptitle(title)
 
     out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # Same-folder temporary file, so os.replace is an atomic rename and readers never see a
-    # half-written PNG.
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=110)
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    buffer = BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    write_atomic(out, buffer.getvalue())
     return out

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import os
+from io import BytesIO
 from pathlib import Path
 
 import numpy as np
 
 from gloam_jax import geometry as geo
-from gloam_jax.io import KittiSequence
+from gloam_jax.io import KittiSequence, write_atomic
 from gloam_jax.simulate.scene import CLASS_NAMES
 
 # SemanticKITTI-like colours (RGB 0..1) for the classes the simulator emits.
@@ -41,10 +41,9 @@ def _colours(labels: np.ndarray) -> np.ndarray:
 
 
 def _save(fig, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=130, bbox_inches="tight")
-    os.replace(tmp, path)
+    buffer = BytesIO()
+    fig.savefig(buffer, format="png", dpi=130, bbox_inches="tight")
+    write_atomic(path, buffer.getvalue())
 
 
 def _figure(size=(9, 9)):

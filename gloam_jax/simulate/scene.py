@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.ndimage import map_coordinates
+from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.spatial import cKDTree
 
 from gloam_jax.errors import InputError
@@ -663,7 +663,13 @@ class _SceneBuilder:
         bumps = 0.02 * smooth_field(rng, shape, 6.0 / GRID_RES)
         relief = self.p.terrain_relief * smooth_field(rng, shape, 25.0 / GRID_RES)
         away = np.clip((dist - self.edge - 1.0) / 12.0, 0.0, 1.0)
-        base = road_z + bumps + relief * away
+        # The nearest road height jumps where two stretches of road at different heights are
+        # equally near (inside corners, slopes). Smoothing removes the step; it leaves the
+        # height under the path itself unchanged (linear along it, constant across it), and
+        # away from the road a much wider smoothing takes over.
+        near_z = gaussian_filter(road_z, sigma=2.0 / GRID_RES, mode="nearest")
+        far_z = gaussian_filter(road_z, sigma=12.0 / GRID_RES, mode="nearest")
+        base = near_z * (1.0 - away) + far_z * away + bumps + relief * away
         return Ground(
             lo,
             base.astype(np.float32),

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from io import BytesIO
 from pathlib import Path
 
 import numpy as np
@@ -234,7 +234,7 @@ def write_sequence(
     if meta_path.exists() and json.loads(meta_path.read_text()).get("config") != meta:
         raise InputError(meta_path, "holds a different simulation; choose another output folder")
     summary = {"config": meta, "source": traj.source, "Tr_cam_velo": traj.Tr_cam_velo.tolist()}
-    _atomic_text(meta_path, json.dumps(summary, indent=2))
+    io.write_atomic(meta_path, json.dumps(summary, indent=2))
     if scene is None:
         scene = build_scene(
             traj,
@@ -257,13 +257,15 @@ def write_sequence(
         P[f"P{k}"][0, 3] = baseline * _P0[0, 0]
     io.write_calib(seq_dir / "calib.txt", {**P, "Tr": traj.Tr_cam_velo})
     times = traj.frame_times - traj.frame_times[0]
-    _atomic_text(seq_dir / "times.txt", "".join(f"{t:.6e}\n" for t in times))
+    io.write_atomic(seq_dir / "times.txt", "".join(f"{t:.6e}\n" for t in times))
     for i in range(traj.num_frames):
         paths = _frame_paths(seq_dir, i)
         if not all(p.exists() for p in paths):
             scan = sim.frame(i)
             io.write_labels(paths[1], scan.labels)
-            _atomic_npy(paths[2], scan.times)
+            buffer = BytesIO()
+            np.save(buffer, scan.times)
+            io.write_atomic(paths[2], buffer.getvalue())
             io.write_scan_bin(paths[0], scan.points)  # last: its presence marks the frame done
         if progress is not None:
             progress(i)
@@ -273,7 +275,7 @@ def write_sequence(
         "min": int(np.min(counts)),
         "max": int(np.max(counts)),
     }
-    _atomic_text(meta_path, json.dumps(summary, indent=2))
+    io.write_atomic(meta_path, json.dumps(summary, indent=2))
     return seq_dir
 
 
@@ -283,16 +285,3 @@ def _frame_paths(seq_dir: Path, i: int) -> tuple[Path, Path, Path]:
         seq_dir / "labels" / f"{i:06d}.label",
         seq_dir / "timestamps" / f"{i:06d}.npy",
     )
-
-
-def _atomic_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-def _atomic_npy(path: Path, array: np.ndarray) -> None:
-    tmp = path.with_name(path.name + ".tmp.npy")
-    np.save(tmp, array)
-    os.replace(tmp, path)
