@@ -9,7 +9,10 @@ import numpy as np
 
 from gloam_jax import geometry as geo
 from gloam_jax.io import KittiSequence, write_atomic
-from gloam_jax.simulate.scene import CLASS_NAMES
+from gloam_jax.simulate.scene import CLASS_NAMES, ROAD, SIDEWALK, TERRAIN
+
+# SemanticKITTI ground classes (road, parking, sidewalk, other-ground, terrain).
+GROUND_CLASSES = (ROAD, 44, SIDEWALK, 49, TERRAIN)
 
 # SemanticKITTI-like colours (RGB 0..1) for the classes the simulator emits.
 CLASS_COLOURS = {
@@ -131,8 +134,12 @@ def render_previews(
     for i in range(n):
         p = deskewed_points(seq, i, T)
         li = seq.labels(i)
-        li = np.zeros(len(p), np.uint16) if li is None else li
-        keep = p[:, 2] - T[i, 2, 3] > -1.4  # above the road: walls, poles, trees
+        # Structure only (walls, poles, trees): ground classes where labelled, else by height.
+        if li is None:
+            li = np.zeros(len(p), np.uint16)
+            keep = p[:, 2] - T[i, 2, 3] > -1.4
+        else:
+            keep = ~np.isin(li, GROUND_CLASSES)
         idx = np.flatnonzero(keep)
         idx = rng.choice(idx, size=min(per, len(idx)), replace=False)
         world.append(p[idx])
@@ -143,7 +150,7 @@ def render_previews(
     ax.scatter(world[:, 0], world[:, 1], s=0.1, c=_colours(lab_all), linewidths=0)
     ax.plot(T[:n, 0, 3], T[:n, 1, 3], "k-", lw=1.0, label="ground truth")
     ax.set_aspect("equal")
-    ax.set_title(f"map of frames 0-{n - 1} from ground-truth poses (points above the road)")
+    ax.set_title(f"map of frames 0-{n - 1} from ground-truth poses, deskewed (no ground)")
     _legend(ax, lab_all)
     paths.append(out_dir / "map_classes.png")
     _save(fig, paths[-1])

@@ -32,6 +32,7 @@ class SensorModel:
     elevation_bias_deg: float = 0.22  # systematic: rays leave this much higher than reported
     beam_range_offset_std: float = 0.015  # per-beam constant range offset, drawn from the seed
     dropout: float = 0.02  # random loss of returns
+    intensity_noise: float = 0.02  # 1-sigma, on intensities in [0, 1]
     mixed_pixel_prob: float = 0.3  # chance a depth-edge return lands between the two surfaces
     mixed_pixel_gap: float = 0.5  # depth jump (m) that counts as an edge
 
@@ -70,6 +71,7 @@ class SensorModel:
             elevation_bias_deg=0.0,
             beam_range_offset_std=0.0,
             dropout=0.0,
+            intensity_noise=0.0,
             mixed_pixel_prob=0.0,
         )
 

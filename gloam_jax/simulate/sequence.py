@@ -169,9 +169,7 @@ class SweepSimulator:
         if sensor.mixed_pixel_prob > 0:
             r = _mixed_pixels(r, hit, rng, sensor.mixed_pixel_prob, sensor.mixed_pixel_gap)
         intensity = refl * (0.35 + 0.65 * cos_inc) * (1.0 - 0.3 * r / sensor.max_range)
-        intensity = np.clip(
-            intensity + rng.normal(0.0, 0.02, size=r.shape) * (sensor.dropout > 0), 0, 1
-        )
+        intensity = np.clip(intensity + rng.normal(0.0, sensor.intensity_noise, r.shape), 0, 1)
         keep = hit & (r >= sensor.min_range) & (r <= sensor.max_range)
         if sensor.dropout > 0:
             weak = intensity * (1.0 - (r / sensor.max_range) ** 2) < 0.01
