@@ -242,8 +242,9 @@ def demo(
 ) -> None:
     """Simulate a short urban drive (cached), score a constant-velocity guess against it."""
     from gloam_jax import io, metrics
+    from gloam_jax.simulate.sequence import FORMAT_VERSION
 
-    data = _cache_dir() / f"demo-seed{seed}"
+    data = _cache_dir() / f"demo-{__version__}-f{FORMAT_VERSION}-seed{seed}-n{frames}"
     seq_dir, elapsed = _run_simulation(data, frames, seed=seed, style="urban", sequence="00")
     console.print(f"simulated sequence: {seq_dir} ({elapsed:.1f} s; cached for the next run)")
     seq = io.KittiSequence(data, "00")

@@ -208,7 +208,9 @@ class SimulationConfig:
     num_columns: int
 
     def to_json(self) -> dict:
-        return {"format_version": FORMAT_VERSION, **asdict(self)}
+        from gloam_jax import __version__
+
+        return {"format_version": FORMAT_VERSION, "gloam_jax": __version__, **asdict(self)}
 
 
 def write_sequence(
