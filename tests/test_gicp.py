@@ -1,0 +1,138 @@
+"""GICP registration: neighbour sets, covariances, recovered transforms, bad input."""
+
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from gloam_jax import covariance as cov
+from gloam_jax import geometry as geo
+from gloam_jax import io
+from gloam_jax import pointcloud as pc
+from gloam_jax.errors import InputError
+from gloam_jax.gicp import GICPConfig, align, prepare
+from gloam_jax.neighbors import KdTree
+
+PAIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_pair"
+
+
+def transform_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+    """(translation error m, rotation error deg) of T_est against T_true."""
+    D = np.linalg.inv(T_true) @ T_est
+    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1, 1))
+    return float(np.linalg.norm(D[:3, 3])), float(np.rad2deg(angle))
+
+
+def structured_scene(seed: int = 0, n: int = 20000) -> np.ndarray:
+    """Points on a floor, two perpendicular walls, a slanted roof and some poles: (n, 3)."""
+    rng = np.random.default_rng(seed)
+    k = n // 5
+    floor = np.c_[rng.uniform(-20, 20, k), rng.uniform(-20, 20, k), np.zeros(k)]
+    wall_x = np.c_[np.full(k, 12.0), rng.uniform(-20, 20, k), rng.uniform(0, 6, k)]
+    wall_y = np.c_[rng.uniform(-20, 20, k), np.full(k, -9.0), rng.uniform(0, 6, k)]
+    u, v = rng.uniform(-10, 10, k), rng.uniform(0, 5, k)
+    roof = np.c_[u, 9.0 + 0.6 * v, 3.0 + 0.8 * v]
+    angles, heights = rng.uniform(0, 2 * np.pi, n - 4 * k), rng.uniform(0, 5, n - 4 * k)
+    centres = np.array([[5.0, 3.0], [-6.0, -4.0], [2.0, -7.0], [-3.0, 6.0]])
+    c = centres[rng.integers(0, 4, n - 4 * k)]
+    poles = np.c_[c + 0.15 * np.c_[np.cos(angles), np.sin(angles)], heights]
+    return np.concatenate([floor, wall_x, wall_y, roof, poles]) + rng.normal(0, 0.005, (n, 3))
+
+
+def test_knn_matches_brute_force():
+    rng = np.random.default_rng(0)
+    pts, queries = rng.uniform(-5, 5, (500, 3)), rng.uniform(-5, 5, (50, 3))
+    idx, valid = KdTree(pts).query(queries, 7, max_distance=2.0)
+    d = np.linalg.norm(queries[:, None] - pts[None], axis=-1)
+    brute = np.argsort(d, axis=1)[:, :7]
+    expected_valid = np.take_along_axis(d, brute, 1) <= 2.0
+    np.testing.assert_array_equal(valid, expected_valid)
+    np.testing.assert_array_equal(np.where(valid, idx, -1), np.where(expected_valid, brute, -1))
+
+
+def test_covariances_and_regularisers():
+    rng = np.random.default_rng(1)
+    plane_pts = np.c_[rng.uniform(-1, 1, (400, 2)), 0.001 * rng.normal(size=400)]
+    nb, _ = KdTree(plane_pts).query(plane_pts, 20)
+    C = cov.knn_covariances(jax.numpy.asarray(plane_pts), jax.numpy.asarray(nb))
+    # Brute-force check of one covariance.
+    expected = np.cov(plane_pts[nb[0]].T, bias=True)
+    np.testing.assert_allclose(C[0], expected, atol=1e-6)
+    for name, expected_values in (("plane", [cov.PLANE_EPS, 1, 1]),):
+        values, vectors = np.linalg.eigh(np.asarray(cov.REGULARIZERS[name](C)))
+        np.testing.assert_allclose(
+            values, np.broadcast_to(expected_values, values.shape), atol=1e-5
+        )
+        # The normal (z) keeps the small eigenvalue.
+        assert np.all(np.abs(vectors[:, 2, 0]) > 0.99)
+    clamped = np.linalg.eigvalsh(np.asarray(cov.raw_eps(C, eps=1e-3)))
+    assert clamped.min() >= 1e-3 - 1e-7
+    np.testing.assert_allclose(clamped[:, 2], np.linalg.eigvalsh(np.asarray(C))[:, 2], rtol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "xi",
+    [
+        [0.8, -0.3, 0.05, 0.0, 0.0, np.deg2rad(4.0)],
+        [-0.5, 0.6, 0.1, np.deg2rad(1.0), np.deg2rad(-1.0), np.deg2rad(-6.0)],
+    ],
+)
+def test_recovers_known_transform(xi):
+    target = structured_scene(0)
+    T_true = np.asarray(geo.se3_exp(np.asarray(xi, np.float32)), dtype=np.float64)
+    # A different sampling of the same surfaces, seen from the transformed pose.
+    source = structured_scene(1) @ T_true[:3, :3] - T_true[:3, :3].T @ T_true[:3, 3]
+    result = align(target, source, downsampling_resolution=0.2)
+    dt, dr = transform_error(result.T_target_source, T_true)
+    assert result.converged
+    assert dt < 0.01 and dr < 0.05
+    assert result.num_inliers > 0.8 * len(prepare(source, downsampling_resolution=0.2).points)
+    assert result.H.shape == (6, 6) and np.all(np.linalg.eigvalsh(result.H) > 0)
+
+
+def test_candidate_choice_in_jax_matches_nearest_neighbour():
+    target = structured_scene(0)
+    source = structured_scene(2) + np.array([0.3, -0.2, 0.0])
+    one = align(target, source, config=GICPConfig(num_candidates=1))
+    five = align(target, source, config=GICPConfig(num_candidates=5))
+    dt, dr = transform_error(one.T_target_source, five.T_target_source)
+    assert dt < 0.005 and dr < 0.02
+
+
+@pytest.mark.skipif(not PAIR.exists(), reason="shared real pair not available")
+def test_real_pair_recovers_reference():
+    target = pc.crop_range(io.read_scan(PAIR / "251370668.pcd"), 0.5, 200.0)
+    source = pc.crop_range(io.read_scan(PAIR / "251371071.pcd"), 0.5, 200.0)
+    reference = np.loadtxt(PAIR / "relative.txt")
+    result = align(target, source, downsampling_resolution=0.05, num_neighbors=20)
+    dt, dr = transform_error(result.T_target_source, reference)
+    assert dt < 0.05 and dr < 0.2
+
+
+def test_agrees_with_small_gicp():
+    small_gicp = pytest.importorskip("small_gicp")
+    target = structured_scene(0)
+    T_true = np.asarray(geo.se3_exp(np.array([0.6, 0.2, 0.0, 0.0, 0.0, 0.05])), np.float64)
+    source = structured_scene(3) @ T_true[:3, :3] - T_true[:3, :3].T @ T_true[:3, 3]
+    ours = align(target, source, downsampling_resolution=0.25)
+    peer = small_gicp.align(
+        target, source, downsampling_resolution=0.25, max_correspondence_distance=1.0, num_threads=2
+    )
+    dt, dr = transform_error(ours.T_target_source, peer.T_target_source)
+    assert dt < 0.01 and dr < 0.05
+
+
+def test_bad_input():
+    with pytest.raises(InputError, match="empty scan"):
+        prepare(np.zeros((0, 3)), source="a.bin")
+    with pytest.raises(InputError, match="a.bin: all 5 points are NaN"):
+        prepare(np.full((5, 3), np.nan), source="a.bin")
+    with pytest.raises(InputError, match="too few points for 20 neighbours"):
+        prepare(np.random.default_rng(0).normal(size=(10, 3)), source="a.bin")
+    pts = structured_scene(0, 4000)
+    pts[::100] = np.nan
+    cloud = prepare(pts, downsampling_resolution=0.0)
+    assert cloud.num_dropped == 40 and len(cloud.points) == 3960
+    with pytest.raises(InputError, match="unknown regularizer"):
+        align(pts, pts, regularizer="sphere")
