@@ -11,7 +11,6 @@ from datetime import datetime
 from pathlib import Path
 from typing import Annotated, TypeVar
 
-import numpy as np
 import typer
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -134,9 +133,18 @@ def simulate(
 
     switches = ErrorSwitches(motion_distortion, moving_objects, detail, sensor_errors)
     seq_dir, elapsed = _run_simulation(
-        out, frames, trajectory=trajectory, start=start, sensor=sensor, style=style, seed=seed,
-        sequence=sequence, switches=switches, num_beams=beams, num_columns=columns,
-    )  # fmt: skip
+        out,
+        frames,
+        trajectory=trajectory,
+        start=start,
+        sensor=sensor,
+        style=style,
+        seed=seed,
+        sequence=sequence,
+        switches=switches,
+        num_beams=beams,
+        num_columns=columns,
+    )
     meta = json.loads((seq_dir / "simulation.json").read_text())
     ppf = meta["points_per_frame"]
     console.print(
@@ -220,13 +228,67 @@ def _cache_dir() -> Path:
     return Path(base) / "gloam-jax"
 
 
-def constant_velocity_guess(T_first: np.ndarray, T_second: np.ndarray, n: int) -> np.ndarray:
-    """Poses that keep the first step's motion for ever: (n, 4, 4)."""
-    delta = np.linalg.inv(T_first) @ T_second
-    poses = [T_first]
-    for _ in range(n - 1):
-        poses.append(poses[-1] @ delta)
-    return np.stack(poses)
+def _run_dir(out: Path) -> Path:
+    """A new timestamped folder under ``out``, with ``out/latest`` pointing at it."""
+    run_dir = out / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+    run_dir.mkdir(parents=True, exist_ok=True)
+    latest = out / "latest"
+    if latest.is_symlink() or latest.exists():
+        latest.unlink()
+    latest.symlink_to(run_dir.name)
+    return run_dir
+
+
+def _run_odometry(
+    data: Path, sequence: str, config_path: Path | None, frames: int | None, run_dir: Path
+) -> dict:
+    from gloam_jax.config import load_config
+    from gloam_jax.io import KittiSequence
+    from gloam_jax.pipeline import run_sequence
+
+    config = load_config(config_path)
+    total = len(KittiSequence(data, sequence)) if frames is None else frames
+    with _progress() as bar:
+        task = bar.add_task(f"odometry {sequence}", total=total, rate="")
+
+        def step(i: int, ms: float) -> None:
+            bar.update(task, completed=i + 1, rate=f"{ms:.0f} ms/frame")
+
+        result = run_sequence(data, sequence, config, run_dir, frames=frames, progress=step)
+    if "per_length" in result:
+        console.print(_metrics_table(result, f"sequence {sequence}: estimate vs ground truth"))
+    elif "rte_unavailable" in result:
+        console.print(f"RTE unavailable ({result['rte_unavailable']})")
+    if "ate" in result:
+        console.print(f"ATE (SE(3)-aligned): rmse {result['ate']['rmse']:.3f} m")
+    flagged = len(result["degenerate_frames"]) + len(result["bad_input_frames"])
+    console.print(
+        f"median {result['median_ms_per_frame']:.1f} ms/frame; {flagged} frame(s) fell back on "
+        f"the motion prior; results: {run_dir}"
+    )
+    return result
+
+
+@app.command(
+    epilog=(
+        "Examples:\n\n"
+        "  gloam run data/sim --sequence 00\n\n"
+        "  gloam run /data/kitti --sequence 07 --config configs/gicp.yaml --frames 500 "
+        "--out results/gicp"
+    )
+)
+@_user_errors
+def run(
+    data: Annotated[Path, typer.Argument(help="KITTI-layout root (sequences/, poses/).")],
+    sequence: Annotated[str, typer.Option(help="Sequence id, e.g. 00.")] = "00",
+    config: Annotated[Path | None, typer.Option(help="YAML settings (configs/*.yaml).")] = None,
+    frames: Annotated[int | None, typer.Option(min=2, help="Only the first N scans.")] = None,
+    out: Annotated[Path, typer.Option(help="Results root; a timestamped run inside.")] = Path(
+        "results"
+    ),
+) -> None:
+    """Run LiDAR odometry on a KITTI-layout sequence (real or simulated) and score it."""
+    _run_odometry(data, sequence, config, frames, _run_dir(out))
 
 
 @app.command(epilog="Example:\n\n  gloam demo --frames 150 --out results")
@@ -240,29 +302,13 @@ def demo(
     ),
     seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
 ) -> None:
-    """Simulate a short urban drive (cached), score a constant-velocity guess against it."""
-    from gloam_jax import io, metrics
+    """Simulate a short urban drive (cached), run GICP odometry on it and score it."""
     from gloam_jax.simulate.sequence import FORMAT_VERSION
 
     data = _cache_dir() / f"demo-{__version__}-f{FORMAT_VERSION}-seed{seed}-n{frames}"
     seq_dir, elapsed = _run_simulation(data, frames, seed=seed, style="urban", sequence="00")
     console.print(f"simulated sequence: {seq_dir} ({elapsed:.1f} s; cached for the next run)")
-    seq = io.KittiSequence(data, "00")
-    gt = seq.gt_poses_cam
-    est = constant_velocity_guess(gt[0], gt[1], len(gt))
-    run_dir = out / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    io.write_kitti_poses(run_dir / "00_poses_kitti.txt", est)
-    io.write_tum_poses(run_dir / "00_poses_tum.txt", seq.times, est)
-    result = metrics.evaluate(gt, est)
-    _write_json(run_dir / "metrics.json", result)
-    metrics.plot_evaluation(gt, est, None, run_dir / "trajectory.png", title="constant velocity")
-    latest = out / "latest"
-    if latest.is_symlink() or latest.exists():
-        latest.unlink()
-    latest.symlink_to(run_dir.name)
-    console.print(_metrics_table(result, "constant-velocity guess vs ground truth"))
-    console.print(f"results: {run_dir}")
+    _run_odometry(data, "00", None, None, _run_dir(out))
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ Conventions (owned here, used everywhere else):
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
@@ -229,3 +230,9 @@ def rotation_angle(R: ArrayLike) -> Array:
     positive = sq > 0.0
     # |phi| has no derivative at 0; the where keeps its gradient finite (zero) there.
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
+
+
+# Host-side loops (registration rounds, odometry bookkeeping) handle a few 4x4 matrices at a
+# time; eager JAX would dispatch dozens of tiny ops for each, so they call these compiled ones.
+se3_exp_jit = jax.jit(se3_exp)
+se3_log_jit = jax.jit(se3_log)

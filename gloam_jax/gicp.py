@@ -12,11 +12,12 @@ Pairs farther apart than ``max_correspondence_distance`` are dropped.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import partial
+from functools import cached_property, partial
 from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 import optimistix as optx
 from jax import Array
@@ -58,6 +59,7 @@ class PreparedCloud:
     tree: KdTree
     num_dropped: int = 0  # NaN / inf points removed
 
+    @cached_property
     def padded(self) -> Cloud:
         size = pc.bucket_size(len(self.points))
         points, mask = pc.pad(self.points.astype(np.float32), size)
@@ -97,8 +99,13 @@ def prepare(
     points = pc.voxel_downsample(points[:, :3].astype(np.float64), downsampling_resolution)
     tree = KdTree(points, source)
     neighbours, _ = tree.query(points, num_neighbors)
-    covs = _covariances(jnp.asarray(points, jnp.float32), jnp.asarray(neighbours), regularizer)
-    return PreparedCloud(points, np.asarray(covs, dtype=np.float64), tree, dropped)
+    # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
+    size = pc.bucket_size(len(points))
+    padded_points = pc.pad(points.astype(np.float32), size)[0]
+    padded_neighbours = pc.pad(neighbours, size)[0]
+    covs = _covariances(jnp.asarray(padded_points), jnp.asarray(padded_neighbours), regularizer)
+    covs = np.asarray(covs, dtype=np.float64)[: len(points)]
+    return PreparedCloud(points, covs, tree, dropped)
 
 
 def _whiten(C: Array, r: Array) -> Array:
@@ -115,8 +122,15 @@ def _whiten(C: Array, r: Array) -> Array:
     return jnp.stack([y0, y1, y2], axis=-1)
 
 
+class _Pairs(NamedTuple):
+    e: Array  # (N, 3) whitened residuals, zero for outliers
+    inlier: Array  # (N,)
+    moved: Array  # (N, 3) source points at T
+    C: Array  # (N, 3, 3) combined covariances C_b + R C_a R^T
+
+
 def _pairs(T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Array, max_d2):
-    """Partner of each source point among its candidates at T, and whitened residuals (N, 3)."""
+    """Each source point's partner among its candidates at T, and the whitened residuals."""
     R = T[:3, :3]
     a = source.points @ R.T + T[:3, 3]
     b_all = target.points[candidates]  # (N, K, 3)
@@ -128,13 +142,12 @@ def _pairs(T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Arr
     inlier = source.mask & (d2_best < max_d2)
     C = target.covs[partner] + R @ source.covs @ R.T
     e = _whiten(C, target.points[partner] - a)
-    return jnp.where(inlier[:, None], e, 0.0), inlier
+    return _Pairs(jnp.where(inlier[:, None], e, 0.0), inlier, a, C)
 
 
 def _residuals(xi: Array, args) -> Array:
     T0, source, target, candidates, valid, max_d2 = args
-    e, _ = _pairs(geo.se3_exp(xi) @ T0, source, target, candidates, valid, max_d2)
-    return e
+    return _pairs(geo.se3_exp(xi) @ T0, source, target, candidates, valid, max_d2).e
 
 
 _ADJOINTS = {"unrolled": optx.RecursiveCheckpointAdjoint(), "implicit": optx.ImplicitAdjoint()}
@@ -152,7 +165,8 @@ def solve_round(
     adjoint: str = "unrolled",
 ) -> tuple[Array, Array]:
     """A few LM steps from T0 over fixed candidate sets: (T (4, 4), xi (6,))."""
-    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8)
+    # The normal equations (6 x 6) are much cheaper than a QR of the (3N x 6) Jacobian.
+    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
     args = (T0, source, target, candidates, valid, max_d2)
     sol = optx.least_squares(
         _residuals,
@@ -168,13 +182,22 @@ def solve_round(
 
 @jax.jit
 def gauss_newton_system(T, source: Cloud, target: Cloud, candidates, valid, max_d2):
-    """H = J^T J, b = J^T e, error = e.e and the inlier count at T (J w.r.t. the left increment)."""
-    args = (T, source, target, candidates, valid, max_d2)
-    zero = jnp.zeros(6, T.dtype)
-    e = _residuals(zero, args).reshape(-1)
-    J = jax.jacfwd(lambda xi: _residuals(xi, args).reshape(-1))(zero)
-    _, inlier = _pairs(T, source, target, candidates, valid, max_d2)
-    return J.T @ J, J.T @ e, e @ e, jnp.sum(inlier)
+    """H = J^T J, b = J^T e, error = e.e and the inlier count at T.
+
+    J is the whitened residuals' Jacobian with respect to the left increment xi = (rho, phi),
+    ``d(b - exp(xi) T a)/d xi = -[I, -hat(T a)]``, with the weights held fixed as GICP does.
+    """
+    pairs = _pairs(T, source, target, candidates, valid, max_d2)
+    p, e, inlier = pairs.moved, pairs.e, pairs.inlier
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=p.dtype), (p.shape[0], 3, 3))
+    d_rho = -eye
+    d_phi = geo.hat(p)  # d(-exp(xi) p)/d phi = hat(p)
+    columns = jnp.concatenate([d_rho, d_phi], axis=-1)  # (N, 3, 6)
+    J = jax.vmap(lambda col: _whiten(pairs.C, col), in_axes=2, out_axes=2)(columns)
+    J = jnp.where(inlier[:, None, None], J, 0.0)
+    H = jnp.einsum("nki,nkj->ij", J, J)
+    b = jnp.einsum("nki,nk->i", J, e)
+    return H, b, jnp.sum(e * e), jnp.sum(inlier)
 
 
 def align_prepared(
@@ -185,7 +208,7 @@ def align_prepared(
 ) -> RegistrationResult:
     """Register prepared clouds; see :func:`align`."""
     T = np.eye(4) if init_T_target_source is None else np.asarray(init_T_target_source, float)
-    src, tgt = source.padded(), target.padded()
+    src, tgt = source.padded, target.padded
     size = src.points.shape[0]
     max_d2 = jnp.float32(config.max_correspondence_distance**2)
     converged, iterations = False, 0
@@ -207,7 +230,7 @@ def align_prepared(
         )
         # Compose in float64 on the host so that many rounds do not accumulate float32 error.
         xi = np.asarray(xi, dtype=np.float64)
-        T = np.asarray(geo.se3_exp(xi), dtype=np.float64) @ T
+        T = np.asarray(geo.se3_exp_jit(xi), dtype=np.float64) @ T
         T[:3, :3] = _orthonormalize(T[:3, :3])
         small_rotation = np.linalg.norm(xi[3:]) < config.rotation_eps
         if small_rotation and np.linalg.norm(xi[:3]) < config.translation_eps:

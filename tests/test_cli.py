@@ -6,7 +6,7 @@ import numpy as np
 from typer.testing import CliRunner
 
 from gloam_jax import __version__, io
-from gloam_jax.cli import app, constant_velocity_guess
+from gloam_jax.cli import app
 
 runner = CliRunner()
 
@@ -73,14 +73,3 @@ def test_simulate_small_sequence(tmp_path):
     assert len(seq) == 2 and len(seq.scan(0)) > 1000
     bad = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--style", "desert"])
     assert bad.exit_code == 2 and "unknown scene style 'desert'" in bad.output
-
-
-def test_constant_velocity_guess_repeats_the_first_step():
-    a = np.eye(4)
-    b = np.eye(4)
-    b[:3, 3] = [0.0, 0.0, 1.0]
-    c, s = np.cos(0.1), np.sin(0.1)
-    b[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
-    poses = constant_velocity_guess(a, b, 4)
-    np.testing.assert_allclose(poses[1], b)
-    np.testing.assert_allclose(poses[3], b @ b @ b, atol=1e-12)

@@ -1,0 +1,141 @@
+"""Odometry: deskew conventions, frame-to-model accuracy, degeneracy, bad scans, `gloam run`."""
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from gloam_jax import io
+from gloam_jax.cli import app
+from gloam_jax.config import dump_config, load_config
+from gloam_jax.errors import InputError
+from gloam_jax.gicp import GICPConfig, align_prepared, prepare
+from gloam_jax.odometry import Odometry, OdometryConfig, azimuth_times, deskew, is_degenerate
+from gloam_jax.simulate import simulate
+
+
+@pytest.fixture(scope="module")
+def sim_sequence(tmp_path_factory):
+    """40 frames of a thinned HDL-64 along a procedural urban drive (about 35 m)."""
+    root = tmp_path_factory.mktemp("sim")
+    simulate(root, frames=40, num_beams=32, num_columns=1000, seed=7, style="urban")
+    return root
+
+
+def test_azimuth_times_match_the_simulated_timestamps(sim_sequence):
+    seq = io.KittiSequence(sim_sequence, "00")
+    scan, times = seq.scan(5), seq.point_times(5)
+    derived = azimuth_times(scan[:, :3], 0.1)
+    # Equal up to a column's width, except at the seam behind the vehicle (t = +-0.05 s).
+    inner = np.abs(times) < 0.045
+    assert np.all(np.abs(derived[inner] - times[inner]) < 0.1 / 1000 + 1e-4)
+
+
+def test_deskew_moves_points_to_the_reference_time():
+    # A sensor moving 1 m per frame along x: a point seen at the start of the sweep (-0.05 s)
+    # lies 0.5 m behind where it is at the reference time.
+    points = np.array([[10.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    moved = deskew(points, np.array([-0.05, 0.05]), np.array([1.0, 0, 0, 0, 0, 0]), 0.1)
+    np.testing.assert_allclose(moved, [[9.5, 0, 0], [10.5, 0, 0]], atol=1e-6)
+
+
+def test_frame_to_model_drift_is_small(sim_sequence):
+    seq = io.KittiSequence(sim_sequence, "00")
+    odometry = Odometry(OdometryConfig())
+    for i in range(len(seq)):
+        odometry.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+    gt, est = seq.gt_poses_lidar, np.stack(odometry.poses)
+    travelled = np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))
+    final = np.linalg.norm(np.linalg.inv(gt[-1]) @ est[-1] - np.eye(4))
+    assert travelled > 25
+    assert np.linalg.norm(est[-1, :3, 3] - gt[-1, :3, 3]) < 0.02 * travelled
+    assert final < 0.05 * travelled
+    assert not any(s.degenerate or s.error for s in odometry.status)
+
+
+def test_frame_to_frame_mode_runs(sim_sequence):
+    seq = io.KittiSequence(sim_sequence, "00")
+    odometry = Odometry(OdometryConfig(mode="frame_to_frame"))
+    for i in range(10):
+        odometry.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+    gt = seq.gt_poses_lidar
+    assert np.linalg.norm(odometry.poses[-1][:3, 3] - gt[9, :3, 3]) < 0.3
+
+
+def corridor(seed: int, length: float = 200.0, n: int = 30000) -> np.ndarray:
+    """Floor and two walls that look the same all along x: translation along x is unseen."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-length / 2, length / 2, n)
+    side = rng.integers(0, 3, n)
+    y = np.where(side == 0, rng.uniform(-4, 4, n), np.where(side == 1, -4.0, 4.0))
+    z = np.where(side == 0, 0.0, rng.uniform(0, 5, n))
+    return np.c_[x, y, z]
+
+
+def test_degenerate_corridor_is_flagged():
+    target, source = prepare(corridor(0)), prepare(corridor(1))
+    result = align_prepared(target, source, None, GICPConfig())
+    threshold = OdometryConfig().degeneracy_threshold
+    assert is_degenerate(result.H, threshold)
+    assert not is_degenerate(np.diag([1e5, 2e5, 3e5, 1e7, 2e7, 3e7]), threshold)
+
+
+def test_bad_scans_fall_back_on_the_motion_prior(sim_sequence):
+    seq = io.KittiSequence(sim_sequence, "00")
+    odometry = Odometry(OdometryConfig())
+    for i in range(3):
+        odometry.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+    predicted = odometry._predict()
+    odometry.register_frame(np.zeros((0, 4), np.float32), None, 0.1, source="empty.bin")
+    assert "empty.bin: empty scan" in odometry.status[-1].error
+    np.testing.assert_allclose(odometry.poses[-1], predicted)
+    few = seq.scan(4)[:5]
+    odometry.register_frame(few, None, 0.1, source="few.bin")
+    assert "few.bin" in odometry.status[-1].error
+    noisy = seq.scan(5).copy()
+    noisy[::50, :3] = np.nan
+    odometry.register_frame(noisy, seq.point_times(5), 0.1)
+    assert odometry.status[-1].num_dropped == len(noisy[::50]) and not odometry.status[-1].error
+    # After the gap the estimate is still on track.
+    assert np.linalg.norm(odometry.poses[-1][:3, 3] - seq.gt_poses_lidar[5, :3, 3]) < 0.3
+
+
+def test_config_round_trip_and_errors(tmp_path):
+    config = OdometryConfig(mode="frame_to_frame", gicp=GICPConfig(num_candidates=3))
+    dump_config(config, tmp_path / "c.yaml")
+    assert load_config(tmp_path / "c.yaml") == config
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump({"gicp": {"num_candidatez": 3}}))
+    with pytest.raises(InputError, match="bad.yaml: unknown setting 'gicp.num_candidatez'"):
+        load_config(tmp_path / "bad.yaml")
+    (tmp_path / "bad2.yaml").write_text("mode: sideways\n")
+    with pytest.raises(InputError, match="mode must be one of"):
+        load_config(tmp_path / "bad2.yaml")
+    (tmp_path / "bad3.yaml").write_text("max_range: far\n")
+    with pytest.raises(InputError, match="max_range must be a number"):
+        load_config(tmp_path / "bad3.yaml")
+
+
+def test_gloam_run_writes_the_run_folder(sim_sequence, tmp_path):
+    result = CliRunner().invoke(
+        app, ["run", str(sim_sequence), "--sequence", "00", "--frames", "8", "--out", str(tmp_path)]
+    )
+    assert result.exit_code == 0, result.output
+    run = tmp_path / "latest"
+    est_cam = io.read_kitti_poses(run / "00_poses_kitti.txt")
+    est_lidar = io.read_kitti_poses(run / "00_poses_lidar_kitti.txt")
+    times, est_tum = io.read_tum_poses(run / "00_poses_tum.txt")
+    assert len(est_cam) == len(est_lidar) == len(times) == 8
+    np.testing.assert_allclose(est_cam[0], np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(est_tum, est_cam, atol=1e-6)
+    seq = io.KittiSequence(sim_sequence, "00")
+    np.testing.assert_allclose(
+        io.lidar_to_cam_poses(est_lidar, seq.Tr_cam_velo), est_cam, atol=1e-9
+    )
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert "rte_unavailable" in metrics and metrics["ate"]["rmse"] < 0.2
+    assert metrics["num_frames"] == 8 and metrics["median_ms_per_frame"] > 0
+    assert load_config(run / "config.yaml") == OdometryConfig()
+    missing = CliRunner().invoke(app, ["run", str(tmp_path / "nowhere")])
+    assert missing.exit_code == 2 and "nowhere" in missing.output
