@@ -69,7 +69,8 @@ def config_dict(config: OdometryConfig) -> dict[str, Any]:
 
 
 def dump_config(config: OdometryConfig, path: str | Path) -> None:
-    write_atomic(path, yaml.safe_dump(config_dict(config), sort_keys=False))
+    header = "# gloam-jax odometry settings (fields of gloam_jax.odometry.OdometryConfig)\n"
+    write_atomic(path, header + yaml.safe_dump(config_dict(config), sort_keys=False))
 
 
 __all__ = ["GICPConfig", "OdometryConfig", "config_dict", "dump_config", "load_config"]

@@ -11,8 +11,8 @@ Pairs farther apart than ``max_correspondence_distance`` are dropped.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import cached_property, partial
+from dataclasses import dataclass, field
+from functools import partial
 from typing import Literal, NamedTuple
 
 import jax
@@ -41,6 +41,11 @@ class GICPConfig:
     translation_eps: float = 1e-3  # and translation update below (m)
     adjoint: Literal["unrolled", "implicit"] = "unrolled"  # differentiation through LM
 
+    def __post_init__(self) -> None:
+        # optimistix's LM spends its first step initialising, so one step never moves.
+        if self.inner_steps < 2:
+            raise InputError(None, f"gicp.inner_steps must be at least 2, not {self.inner_steps}")
+
 
 class Cloud(NamedTuple):
     """Device-side padded cloud: points (P, 3), covariances (P, 3, 3), mask (P,)."""
@@ -59,13 +64,18 @@ class PreparedCloud:
     tree: KdTree
     num_dropped: int = 0  # NaN / inf points removed
 
-    @cached_property
-    def padded(self) -> Cloud:
-        size = pc.bucket_size(len(self.points))
+    _padded: dict[int, Cloud] = field(default_factory=dict, repr=False)
+
+    def padded(self, size: int | None = None) -> Cloud:
+        """Device arrays padded to ``size`` rows (default: the bucket size), cached."""
+        size = pc.bucket_size(len(self.points)) if size is None else size
+        if size in self._padded:
+            return self._padded[size]
         points, mask = pc.pad(self.points.astype(np.float32), size)
         covs, _ = pc.pad(self.covs.astype(np.float32), size)
         covs[len(self.points) :] = np.eye(3, dtype=np.float32)  # keeps padded rows finite
-        return Cloud(jnp.asarray(points), jnp.asarray(covs), jnp.asarray(mask))
+        self._padded[size] = Cloud(jnp.asarray(points), jnp.asarray(covs), jnp.asarray(mask))
+        return self._padded[size]
 
 
 class RegistrationResult(NamedTuple):
@@ -93,6 +103,7 @@ def prepare(
     num_neighbors: int = 20,
     regularizer: str = "plane",
     source: str | None = None,
+    buckets: pc.StickyBuckets | None = None,
 ) -> PreparedCloud:
     """Drop invalid points, voxel-downsample, build the tree and the covariances: (N, 3+)."""
     points, dropped = pc.drop_invalid(np.asarray(points), source)
@@ -100,7 +111,7 @@ def prepare(
     tree = KdTree(points, source)
     neighbours, _ = tree.query(points, num_neighbors)
     # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
-    size = pc.bucket_size(len(points))
+    size = pc.bucket_size(len(points)) if buckets is None else buckets("prepare", len(points))
     padded_points = pc.pad(points.astype(np.float32), size)[0]
     padded_neighbours = pc.pad(neighbours, size)[0]
     covs = _covariances(jnp.asarray(padded_points), jnp.asarray(padded_neighbours), regularizer)
@@ -205,10 +216,16 @@ def align_prepared(
     source: PreparedCloud,
     init_T_target_source: np.ndarray | None = None,
     config: GICPConfig = GICPConfig(),
+    buckets: pc.StickyBuckets | None = None,
 ) -> RegistrationResult:
-    """Register prepared clouds; see :func:`align`."""
+    """Register prepared clouds; see :func:`align`. ``buckets`` keeps padded sizes from
+    shrinking across calls (odometry), so the solver compiles once."""
     T = np.eye(4) if init_T_target_source is None else np.asarray(init_T_target_source, float)
-    src, tgt = source.padded, target.padded
+    if buckets is None:
+        src, tgt = source.padded(), target.padded()
+    else:
+        src = source.padded(buckets("source", len(source.points)))
+        tgt = target.padded(buckets("target", len(target.points)))
     size = src.points.shape[0]
     max_d2 = jnp.float32(config.max_correspondence_distance**2)
     converged, iterations = False, 0

@@ -34,7 +34,7 @@ class OdometryConfig:
     min_range: float = 3.0  # m; closer returns hit the vehicle itself
     max_range: float = 100.0
     downsampling_resolution: float = 0.5  # m, voxel size of each scan
-    num_neighbors: int = 20  # for the covariances
+    num_neighbors: int = 10  # for the covariances (small_gicp's default)
     regularizer: str = "plane"
     deskew: bool = True
     sweep_duration: float = 0.1  # s, used when scans carry no per-point times
@@ -74,9 +74,16 @@ def _deskew(points: jax.Array, fraction: jax.Array, xi: jax.Array) -> jax.Array:
     return jnp.einsum("nij,nj->ni", T[:, :3, :3], points) + T[:, :3, 3]
 
 
-def deskew(points: np.ndarray, times: np.ndarray, xi_per_frame: np.ndarray, frame_dt: float):
-    """Undo motion distortion with constant velocity: points (N, 3), times (N,) s -> (N, 3)."""
-    size = pc.bucket_size(len(points))
+def deskew(
+    points: np.ndarray,
+    times: np.ndarray,
+    xi_per_frame: np.ndarray,
+    frame_dt: float,
+    size: int | None = None,
+) -> np.ndarray:
+    """Undo motion distortion with constant velocity: points (N, 3), times (N,) s -> (N, 3).
+    ``size``: pad to this many rows (default: the bucket size)."""
+    size = pc.bucket_size(len(points)) if size is None else size
     padded, _ = pc.pad(points.astype(np.float32), size)
     frac, _ = pc.pad((times / frame_dt).astype(np.float32), size)
     out = _deskew(jnp.asarray(padded), jnp.asarray(frac), jnp.asarray(xi_per_frame, jnp.float32))
@@ -134,6 +141,7 @@ class Odometry:
         self.velocity = np.zeros(6)  # se(3) motion per frame interval
         self.map = LocalMap(config.max_keyframes)
         self.previous: PreparedCloud | None = None
+        self.buckets = pc.StickyBuckets()
 
     def _predict(self) -> np.ndarray:
         if not self.poses:
@@ -164,13 +172,15 @@ class Odometry:
         reduced = pc.voxel_downsample(np.c_[points, t], cfg.downsampling_resolution)
         points = reduced[:, :3]
         if cfg.deskew and self.poses:
-            points = deskew(points, reduced[:, 3], self.velocity, frame_dt)
+            size = self.buckets("deskew", len(points))
+            points = deskew(points, reduced[:, 3], self.velocity, frame_dt, size)
         return prepare(
             points,
             downsampling_resolution=0.0,
             num_neighbors=cfg.num_neighbors,
             regularizer=cfg.regularizer,
             source=source,
+            buckets=self.buckets,
         )
 
     def register_frame(
@@ -195,10 +205,10 @@ class Odometry:
             return self._accept(np.eye(4), cloud, status)
         if cfg.mode == "frame_to_frame":
             init = np.asarray(geo.se3_exp_jit(self.velocity), dtype=np.float64)
-            result = align_prepared(self.previous, cloud, init, cfg.gicp)
+            result = align_prepared(self.previous, cloud, init, cfg.gicp, self.buckets)
             T = self.poses[-1] @ result.T_target_source
         else:
-            result = align_prepared(self.map.cloud, cloud, T_pred, cfg.gicp)
+            result = align_prepared(self.map.cloud, cloud, T_pred, cfg.gicp, self.buckets)
             T = result.T_target_source
         status.iterations, status.num_inliers = result.iterations, result.num_inliers
         status.converged = result.converged

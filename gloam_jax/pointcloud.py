@@ -65,6 +65,19 @@ def bucket_size(n: int, buckets: tuple[int, ...] = BUCKETS) -> int:
     return 1 << int(np.ceil(np.log2(n)))
 
 
+class StickyBuckets:
+    """Bucket sizes that never shrink, per role ("source", "target", ...): once a stream of
+    scans has warmed up, shapes, and so compilations, stop changing."""
+
+    def __init__(self) -> None:
+        self._floor: dict[str, int] = {}
+
+    def __call__(self, role: str, n: int) -> int:
+        size = max(bucket_size(n), self._floor.get(role, 0))
+        self._floor[role] = size
+        return size
+
+
 def pad(array: np.ndarray, size: int, fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Pad the leading axis to ``size``: (N, ...) -> ((size, ...), mask (size,) True for real)."""
     n = len(array)

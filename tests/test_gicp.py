@@ -136,3 +136,32 @@ def test_bad_input():
     assert cloud.num_dropped == 40 and len(cloud.points) == 3960
     with pytest.raises(InputError, match="unknown regularizer"):
         align(pts, pts, regularizer="sphere")
+
+
+def test_analytic_gauss_newton_matches_autodiff():
+    import jax.numpy as jnp
+
+    from gloam_jax.gicp import Cloud, _residuals, gauss_newton_system
+
+    rng = np.random.default_rng(4)
+    n = 64
+    target_points = rng.normal(size=(n, 3)).astype(np.float32)
+    A = rng.normal(size=(n, 3, 3))
+    target_covs = (A @ A.transpose(0, 2, 1) + 0.1 * np.eye(3)).astype(np.float32)
+    # Isotropic source covariances: R C R^T = C, so fixing the weights changes nothing.
+    source = Cloud(
+        jnp.asarray(target_points + 0.05),
+        jnp.asarray(np.tile(0.2 * np.eye(3), (n, 1, 1)).astype(np.float32)),
+        jnp.ones(n, bool),
+    )
+    target = Cloud(jnp.asarray(target_points), jnp.asarray(target_covs), jnp.ones(n, bool))
+    cand = jnp.asarray(np.arange(n)[:, None].astype(np.int32))
+    valid = jnp.ones((n, 1), bool)
+    T = jnp.asarray(geo.se3_exp(np.array([0.01, -0.02, 0.03, 0.02, -0.01, 0.015])), jnp.float32)
+    args = (T, source, target, cand, valid, jnp.float32(100.0))
+    H, b, error, inliers = gauss_newton_system(*args)
+    J = jax.jacfwd(lambda xi: _residuals(xi, args).reshape(-1))(jnp.zeros(6))
+    e = _residuals(jnp.zeros(6), args).reshape(-1)
+    np.testing.assert_allclose(H, J.T @ J, rtol=2e-4, atol=1e-3)
+    np.testing.assert_allclose(b, J.T @ e, rtol=2e-4, atol=1e-4)
+    assert float(error) == pytest.approx(float(e @ e), rel=1e-5) and int(inliers) == n

@@ -1,0 +1,168 @@
+"""Odometry accuracy and speed: this project's GICP against small_gicp and KISS-ICP.
+
+    python scripts/bench_odometry.py DATA --sequences 07 05 01 --threads 2 --out bench.json
+
+DATA is a KITTI-layout root (real or from ``gloam simulate``). Every method gets the same raw
+scans, in order, with the same number of threads:
+
+* ``gloam-jax``: this project's frame-to-model GICP (``--config``, default configs/gicp.yaml),
+  deskewed with the scans' per-point times (azimuth-derived where absent);
+* ``small_gicp``: its documented scan-to-model odometry (VGICP on a GaussianVoxelMap of 1 m
+  voxels with an LRU horizon, 0.25 m downsampling, constant-velocity guess), no deskew;
+* ``kiss-icp``: KISS-ICP with its default configuration, deskew on (times in [0, 1]).
+
+Prints t_err (%), r_err (deg/100 m) with the KITTI devkit metric in the camera-0 frame, and the
+median milliseconds per frame; counts JAX compilations after the first 20 frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from gloam_jax import io, metrics
+
+
+class _CompileCounter(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if "Compiling" in record.getMessage():
+            self.count += 1
+
+
+def run_gloam(seq: io.KittiSequence, n: int, config_path: Path | None, counter: _CompileCounter):
+    from gloam_jax.config import load_config
+    from gloam_jax.odometry import Odometry
+
+    odometry = Odometry(load_config(config_path))
+    times, ms, late_compiles = seq.times, [], 0
+    for i in range(n):
+        scan, point_times = seq.scan(i), seq.point_times(i)
+        dt = float(times[i] - times[i - 1]) if i else 0.1
+        if i == 20:
+            late_compiles = counter.count
+        t0 = time.perf_counter()
+        odometry.register_frame(scan, point_times, dt)
+        ms.append(1e3 * (time.perf_counter() - t0))
+    extra = {"compiles_after_frame_20": counter.count - late_compiles if n > 20 else None}
+    return np.stack(odometry.poses), ms, extra
+
+
+def run_small_gicp(seq: io.KittiSequence, n: int, threads: int):
+    import small_gicp
+
+    voxelmap = small_gicp.GaussianVoxelMap(1.0)
+    voxelmap.set_lru(horizon=100, clear_cycle=10)
+    T_world_lidar, T_last_current = np.eye(4), np.eye(4)
+    poses, ms = [], []
+    for i in range(n):
+        raw = seq.scan(i)[:, :3].astype(np.float64)
+        t0 = time.perf_counter()
+        raw = raw[np.all(np.isfinite(raw), axis=1)]
+        down, _ = small_gicp.preprocess_points(raw, 0.25, num_threads=threads)
+        if voxelmap.size() > 0:
+            result = small_gicp.align(
+                voxelmap, down, T_world_lidar @ T_last_current, num_threads=threads
+            )
+            T_last_current = np.linalg.inv(T_world_lidar) @ result.T_target_source
+            T_world_lidar = result.T_target_source
+        voxelmap.insert(down, T_world_lidar)
+        ms.append(1e3 * (time.perf_counter() - t0))
+        poses.append(T_world_lidar.copy())
+    return np.stack(poses), ms, {}
+
+
+def run_kiss(seq: io.KittiSequence, n: int, threads: int):
+    from kiss_icp.config import load_config
+    from kiss_icp.kiss_icp import KissICP
+
+    config = load_config(None)
+    config.data.deskew = True
+    config.registration.max_num_threads = threads
+    odometry = KissICP(config)
+    poses, ms = [], []
+    for i in range(n):
+        scan = seq.scan(i)[:, :3].astype(np.float64)
+        point_times = seq.point_times(i)
+        if point_times is None:
+            u = 0.5 * (1.0 - np.arctan2(scan[:, 1], scan[:, 0]) / np.pi)
+        else:
+            u = 0.5 + point_times.astype(np.float64) / 0.1
+        t0 = time.perf_counter()
+        odometry.register_frame(scan, u)
+        ms.append(1e3 * (time.perf_counter() - t0))
+        poses.append(odometry.last_pose.copy())
+    return np.stack(poses), ms, {}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", type=Path)
+    parser.add_argument("--sequences", nargs="+", required=True)
+    parser.add_argument("--frames", type=int, default=None)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--config", type=Path, default=Path("configs/gicp.yaml"))
+    parser.add_argument("--methods", default="gloam-jax,small_gicp,kiss-icp")
+    parser.add_argument("--out", type=Path, default=Path("bench_odometry.json"))
+    args = parser.parse_args()
+
+    import jax
+
+    counter = _CompileCounter()
+    logging.getLogger("jax").addHandler(counter)
+    jax.config.update("jax_log_compiles", True)
+    logging.getLogger("jax").setLevel(logging.WARNING)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+
+    results = json.loads(args.out.read_text()) if args.out.exists() else {}
+    for name in args.sequences:
+        seq = io.KittiSequence(args.data, name)
+        n = len(seq) if args.frames is None else min(args.frames, len(seq))
+        gt = seq.gt_poses_cam[:n]
+        for method in args.methods.split(","):
+            key = f"{name}/{method}"
+            if key in results:  # resume: keep what an earlier run measured
+                continue
+            if method == "gloam-jax":
+                poses, ms, extra = run_gloam(seq, n, args.config, counter)
+            elif method == "small_gicp":
+                poses, ms, extra = run_small_gicp(seq, n, args.threads)
+            else:
+                poses, ms, extra = run_kiss(seq, n, args.threads)
+            est = io.lidar_to_cam_poses(np.linalg.inv(poses[0]) @ poses, seq.Tr_cam_velo)
+            rte = metrics.kitti_rte(gt, est)
+            results[key] = {
+                "t_err_percent": rte.t_err_percent,
+                "r_err_deg_per_100m": rte.r_err_deg_per_100m,
+                "median_ms_per_frame": float(np.median(ms)),
+                "frames": n,
+                **extra,
+            }
+            print(key, json.dumps(results[key]), flush=True)
+            io.write_atomic(args.out, json.dumps(results, indent=2))
+
+    print(
+        "\n| sequence | method | t_err (%) | r_err (deg/100 m) | median ms/frame | vs small_gicp |"
+    )
+    print("|---|---|---|---|---|---|")
+    for key, r in results.items():
+        name, method = key.split("/")
+        peer = results.get(f"{name}/small_gicp")
+        ratio = f"{r['median_ms_per_frame'] / peer['median_ms_per_frame']:.1f}x" if peer else "-"
+        print(
+            f"| {name} | {method} | {r['t_err_percent']:.2f} | {r['r_err_deg_per_100m']:.2f} | "
+            f"{r['median_ms_per_frame']:.1f} | {ratio} |"
+        )
+
+
+if __name__ == "__main__":
+    main()
