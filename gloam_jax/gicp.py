@@ -29,6 +29,11 @@ from gloam_jax.errors import InputError
 from gloam_jax.neighbors import KdTree
 
 
+def _real():
+    """float64 when JAX runs in x64 mode (gradient checks, tests), else float32 (fast path)."""
+    return jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32
+
+
 @dataclass(frozen=True)
 class GICPConfig:
     """Registration settings (defaults follow small_gicp's documented ones)."""
@@ -64,18 +69,21 @@ class PreparedCloud:
     tree: KdTree
     num_dropped: int = 0  # NaN / inf points removed
 
-    _padded: dict[int, Cloud] = field(default_factory=dict, repr=False)
+    _padded: dict[tuple, Cloud] = field(default_factory=dict, repr=False)
 
     def padded(self, size: int | None = None) -> Cloud:
         """Device arrays padded to ``size`` rows (default: the bucket size), cached."""
         size = pc.bucket_size(len(self.points)) if size is None else size
-        if size in self._padded:
-            return self._padded[size]
-        points, mask = pc.pad(self.points.astype(np.float32), size)
-        covs, _ = pc.pad(self.covs.astype(np.float32), size)
-        covs[len(self.points) :] = np.eye(3, dtype=np.float32)  # keeps padded rows finite
-        self._padded[size] = Cloud(jnp.asarray(points), jnp.asarray(covs), jnp.asarray(mask))
-        return self._padded[size]
+        key = (size, _real())
+        if key in self._padded:
+            return self._padded[key]
+        points, mask = pc.pad(self.points, size)
+        covs, _ = pc.pad(self.covs, size)
+        covs[len(self.points) :] = np.eye(3)  # keeps padded rows finite
+        real = _real()
+        cloud = Cloud(jnp.asarray(points, real), jnp.asarray(covs, real), jnp.asarray(mask))
+        self._padded[key] = cloud
+        return cloud
 
 
 class RegistrationResult(NamedTuple):
@@ -112,7 +120,7 @@ def prepare(
     neighbours, _ = tree.query(points, num_neighbors)
     # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
     size = pc.bucket_size(len(points)) if buckets is None else buckets("prepare", len(points))
-    padded_points = pc.pad(points.astype(np.float32), size)[0]
+    padded_points = pc.pad(points, size)[0]
     padded_neighbours = pc.pad(neighbours, size)[0]
     covs = _covariances(jnp.asarray(padded_points), jnp.asarray(padded_neighbours), regularizer)
     covs = np.asarray(covs, dtype=np.float64)[: len(points)]
@@ -227,7 +235,7 @@ def align_prepared(
         src = source.padded(buckets("source", len(source.points)))
         tgt = target.padded(buckets("target", len(target.points)))
     size = src.points.shape[0]
-    max_d2 = jnp.float32(config.max_correspondence_distance**2)
+    max_d2 = jnp.asarray(config.max_correspondence_distance**2, dtype=_real())
     converged, iterations = False, 0
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007
         moved = source.points @ T[:3, :3].T + T[:3, 3]
@@ -236,7 +244,7 @@ def align_prepared(
         )
         cand, valid = pc.pad(cand, size)[0], pc.pad(valid, size)[0]
         T_new, xi = solve_round(
-            jnp.asarray(T, jnp.float32),
+            jnp.asarray(T, dtype=_real()),
             src,
             tgt,
             jnp.asarray(cand),
@@ -254,7 +262,7 @@ def align_prepared(
             converged = True
             break
     H, b, error, inliers = gauss_newton_system(
-        jnp.asarray(T, jnp.float32), src, tgt, jnp.asarray(cand), jnp.asarray(valid), max_d2
+        jnp.asarray(T, dtype=_real()), src, tgt, jnp.asarray(cand), jnp.asarray(valid), max_d2
     )
     return RegistrationResult(
         T,

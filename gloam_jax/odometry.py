@@ -84,9 +84,11 @@ def deskew(
     """Undo motion distortion with constant velocity: points (N, 3), times (N,) s -> (N, 3).
     ``size``: pad to this many rows (default: the bucket size)."""
     size = pc.bucket_size(len(points)) if size is None else size
-    padded, _ = pc.pad(points.astype(np.float32), size)
-    frac, _ = pc.pad((times / frame_dt).astype(np.float32), size)
-    out = _deskew(jnp.asarray(padded), jnp.asarray(frac), jnp.asarray(xi_per_frame, jnp.float32))
+    padded, _ = pc.pad(np.asarray(points, np.float64), size)
+    frac, _ = pc.pad(np.asarray(times, np.float64) / frame_dt, size)
+    # float32 unless JAX runs in x64 mode: jnp.asarray picks the default precision.
+    xi = np.asarray(xi_per_frame, np.float64)
+    out = _deskew(jnp.asarray(padded), jnp.asarray(frac), jnp.asarray(xi))
     return np.asarray(out, dtype=np.float64)[: len(points)]
 
 

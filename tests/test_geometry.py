@@ -9,7 +9,14 @@ from hypothesis.extra.numpy import arrays
 
 from gloam_jax import geometry as geo
 
-jax.config.update("jax_enable_x64", True)
+
+@pytest.fixture(autouse=True, scope="module")
+def x64():
+    """float64 for this module only; the rest of the suite runs the default float32 path."""
+    jax.config.update("jax_enable_x64", True)
+    yield
+    jax.config.update("jax_enable_x64", False)
+
 
 finite = st.floats(-3.0, 3.0, allow_nan=False, allow_subnormal=False)
 vec3 = arrays(np.float64, 3, elements=finite)

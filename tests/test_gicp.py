@@ -165,3 +165,16 @@ def test_analytic_gauss_newton_matches_autodiff():
     np.testing.assert_allclose(H, J.T @ J, rtol=2e-4, atol=1e-3)
     np.testing.assert_allclose(b, J.T @ e, rtol=2e-4, atol=1e-4)
     assert float(error) == pytest.approx(float(e @ e), rel=1e-5) and int(inliers) == n
+
+
+def test_runs_in_float64_mode_too():
+    target = structured_scene(0)
+    T_true = np.asarray(geo.se3_exp(np.array([0.4, -0.2, 0.0, 0.0, 0.0, 0.03])), np.float64)
+    source = structured_scene(5) @ T_true[:3, :3] - T_true[:3, :3].T @ T_true[:3, 3]
+    jax.config.update("jax_enable_x64", True)
+    try:
+        result = align(target, source, downsampling_resolution=0.3)
+    finally:
+        jax.config.update("jax_enable_x64", False)
+    dt, dr = transform_error(result.T_target_source, T_true)
+    assert dt < 0.01 and dr < 0.05
