@@ -203,14 +203,15 @@ class Odometry:
             status.error = str(err)
             return self._accept(T_pred, None, status)
         status.num_points = len(cloud.points)
-        if not self.poses:
-            return self._accept(np.eye(4), cloud, status)
+        target = self.previous if cfg.mode == "frame_to_frame" else self.map.cloud
+        if target is None:  # first usable scan (earlier ones, if any, were bad): it anchors
+            return self._accept(T_pred, cloud, status)
         if cfg.mode == "frame_to_frame":
             init = np.asarray(geo.se3_exp_jit(self.velocity), dtype=np.float64)
-            result = align_prepared(self.previous, cloud, init, cfg.gicp, self.buckets)
+            result = align_prepared(target, cloud, init, cfg.gicp, self.buckets)
             T = self.poses[-1] @ result.T_target_source
         else:
-            result = align_prepared(self.map.cloud, cloud, T_pred, cfg.gicp, self.buckets)
+            result = align_prepared(target, cloud, T_pred, cfg.gicp, self.buckets)
             T = result.T_target_source
         status.iterations, status.num_inliers = result.iterations, result.num_inliers
         status.converged = result.converged

@@ -102,6 +102,17 @@ def test_bad_scans_fall_back_on_the_motion_prior(sim_sequence):
     assert np.linalg.norm(odometry.poses[-1][:3, 3] - seq.gt_poses_lidar[5, :3, 3]) < 0.3
 
 
+def test_a_bad_first_scan_does_not_stop_the_run(sim_sequence):
+    seq = io.KittiSequence(sim_sequence, "00")
+    for mode in ("frame_to_model", "frame_to_frame"):
+        odometry = Odometry(OdometryConfig(mode=mode))
+        odometry.register_frame(np.zeros((0, 4), np.float32), None, 0.1, source="empty.bin")
+        for i in range(1, 4):
+            odometry.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+        assert odometry.status[0].error and not odometry.status[-1].error
+        assert len(odometry.poses) == 4 and np.all(np.isfinite(np.stack(odometry.poses)))
+
+
 def test_config_round_trip_and_errors(tmp_path):
     config = OdometryConfig(mode="frame_to_frame", gicp=GICPConfig(num_candidates=3))
     dump_config(config, tmp_path / "c.yaml")
