@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from gloam_jax import geometry as geo
 from gloam_jax.io import KittiSequence, write_atomic
 from gloam_jax.simulate.scene import CLASS_NAMES, ROAD, SIDEWALK, TERRAIN
+from gloam_jax.simulate.trajectory import interpolate_poses
 
 # SemanticKITTI ground classes (road, parking, sidewalk, other-ground, terrain).
 GROUND_CLASSES = (ROAD, 44, SIDEWALK, 49, TERRAIN)
@@ -80,17 +80,9 @@ def deskewed_points(seq: KittiSequence, i: int, T_world_lidar: np.ndarray) -> np
     times = seq.times
     if dt is None or len(times) < 2:
         return pts @ T_world_lidar[i, :3, :3].T + T_world_lidar[i, :3, 3]
-    t = times[i] + dt.astype(np.float64)
-    k = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
-    alpha = (t - times[k]) / (times[k + 1] - times[k])
-    rel = np.linalg.inv(T_world_lidar[k]) @ T_world_lidar[k + 1]
-    # Few distinct (k, alpha) pairs per frame: interpolate per column, not per point.
-    key, inv = np.unique(np.stack([k, np.round(alpha * 1e4)], 1), axis=0, return_inverse=True)
-    xi = np.asarray(geo.se3_log(rel[key[:, 0].astype(int)]), dtype=np.float64)
-    T_k = T_world_lidar[key[:, 0].astype(int)] @ np.asarray(
-        geo.se3_exp(xi * (key[:, 1:2] / 1e4)), np.float64
-    )
-    T_pts = T_k[inv.ravel()]
+    # Few distinct times per frame (one per column): interpolate per time, not per point.
+    t_unique, inv = np.unique(times[i] + dt.astype(np.float64), return_inverse=True)
+    T_pts = interpolate_poses(times, T_world_lidar, t_unique)[inv.ravel()]
     return np.einsum("nij,nj->ni", T_pts[:, :3, :3], pts) + T_pts[:, :3, 3]
 
 

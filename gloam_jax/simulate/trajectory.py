@@ -47,15 +47,20 @@ class Trajectory:
 
     def poses_at(self, t: np.ndarray) -> np.ndarray:
         """Poses at times t, SE(3)-interpolated (extrapolated past the ends): (K,) -> (K, 4, 4)."""
-        t = np.asarray(t, dtype=np.float64)
-        k = np.clip(np.searchsorted(self.times, t, side="right") - 1, 0, len(self.times) - 2)
-        t0, t1 = self.times[k], self.times[k + 1]
-        alpha = (t - t0) / (t1 - t0)
-        T0, T1 = self.T_world_lidar[k], self.T_world_lidar[k + 1]
-        # Interpolate the small relative motion (accurate in float32) and compose in float64.
-        xi = np.asarray(geo.se3_log(np.linalg.inv(T0) @ T1), dtype=np.float64)
-        step = np.asarray(geo.se3_exp(alpha[:, None] * xi), dtype=np.float64)
-        return T0 @ step
+        return interpolate_poses(self.times, self.T_world_lidar, t)
+
+
+def interpolate_poses(times: np.ndarray, poses: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Poses (M, 4, 4) sampled at ``times`` (M,), SE(3)-interpolated at ``t`` (K,) between
+    neighbouring samples (extrapolated past the ends): (K, 4, 4)."""
+    t = np.asarray(t, dtype=np.float64)
+    k = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    alpha = (t - times[k]) / (times[k + 1] - times[k])
+    T0, T1 = poses[k], poses[k + 1]
+    # Interpolate the small relative motion (accurate in float32) and compose in float64.
+    xi = np.asarray(geo.se3_log(np.linalg.inv(T0) @ T1), dtype=np.float64)
+    step = np.asarray(geo.se3_exp(alpha[:, None] * xi), dtype=np.float64)
+    return T0 @ step
 
 
 def default_Tr_cam_velo() -> np.ndarray:
