@@ -5,7 +5,9 @@ eigenvalues and keep the eigenvectors:
 
 * ``plane``: (eps, 1, 1), GICP's plane-to-plane model (Segal et al.), eps along the normal;
 * ``raw_eps``: the measured eigenvalues, clamped below at eps (m^2);
-* a learned one (Generalized LOAM, Algorithm 1) plugs in through :func:`recompose`.
+* :func:`learned` (Generalized LOAM, Algorithm 1): eigenvalues from the Eigenvalue Estimation
+  MLP, sorted ascending, clamped below at eps, scaled to unit L2 norm. It needs the MLP's
+  output, so it is not in :data:`REGULARIZERS`.
 
 Eigenvectors depend on the points only and sit under ``stop_gradient``: the eigendecomposition
 has no usable derivative where eigenvalues repeat, and learned models only need gradients
@@ -50,6 +52,21 @@ def raw_eps(covariances: Array, eps: float = PLANE_EPS) -> Array:
     """Measured eigenvalues, clamped below at eps: keeps lines and spheres as they are."""
     values, vectors = eigendecompose(covariances)
     return recompose(vectors, jnp.maximum(values, eps))
+
+
+def learned(covariances: Array, eigenvalues: Array, eps: float | Array) -> Array:
+    """Algorithm 1 of Generalized LOAM: k-NN eigenvectors, MLP eigenvalues.
+
+    ``eigenvalues`` (N, 3) is the Eigenvalue Estimation MLP's raw output. It is sorted
+    ascending (the smallest goes along the normal), clamped below at ``eps`` > 0 (no rank drop;
+    before the scaling, so all-zero outputs stay finite) and divided by its L2 norm, then
+    recomposed with the eigenvectors of ``covariances`` (N, 3, 3) -> (N, 3, 3).
+    Differentiable with respect to ``eigenvalues`` (and ``eps``), not the covariances.
+    """
+    _, vectors = eigendecompose(covariances)
+    values = jnp.maximum(jnp.sort(eigenvalues, axis=-1), eps)
+    values = values / jnp.linalg.norm(values, axis=-1, keepdims=True)
+    return recompose(vectors, values.astype(vectors.dtype))
 
 
 REGULARIZERS = {"plane": plane, "raw_eps": raw_eps}

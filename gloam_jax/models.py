@@ -1,0 +1,226 @@
+"""The two tiny MLPs of Generalized LOAM, the model record around them, and its file.
+
+Both MLPs are 6 -> 4 -> 3 with a ReLU on the hidden layer and a linear output (the paper
+says only "the ReLU activation function is used"; Algorithm 1 clamps eigenvalues at eps
+because raw outputs may be zero or negative, and the association features are distances in
+an unbounded space, so neither output is rectified). 43 parameters each: 6x4 + 4 + 4x3 + 3
+(the paper counts 46).
+
+* :class:`FeatureConversionMLP`: PCA features f (6,) -> association features f_bar (3,),
+  concatenated with xyz for the nearest-neighbour search (Eq. 3 of the paper).
+* :class:`EigenvalueEstimationMLP`: f (6,) -> raw eigenvalues (3,) for Algorithm 1
+  (:func:`gloam_jax.covariance.learned`).
+
+A :class:`GLOAMModel` adds the frozen PCA, Algorithm 1's eps and the backbone that makes the
+raw features; :func:`save_model` writes it as one ``.npz`` (arrays plus a JSON ``metadata``
+entry), :func:`load_model` reads and checks it.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, NamedTuple, Self
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from gloam_jax.errors import InputError
+from gloam_jax.features.pca import FeaturePCA
+from gloam_jax.io import write_atomic
+
+MODEL_FORMAT = "gloam-jax-model"
+MODEL_VERSION = 1
+FEATURE_DIM = 6  # PCA output, the MLPs' input
+HIDDEN_DIM = 4
+OUTPUT_DIM = 3
+DEFAULT_EPS = 1e-3  # Algorithm 1's eigenvalue floor, on unit-norm eigenvalue vectors
+
+
+class MLP(NamedTuple):
+    """6 -> 4 (ReLU) -> 3 (linear): w1 (6, 4), b1 (4,), w2 (4, 3), b2 (3,)."""
+
+    w1: Array
+    b1: Array
+    w2: Array
+    b2: Array
+
+    @classmethod
+    def init(cls, key: Array) -> Self:
+        """Uniform in +-1/sqrt(fan_in) (weights and biases), as torch.nn.Linear."""
+        return cls(*_init_params(key))
+
+    def __call__(self, f: Array) -> Array:
+        """Outputs (..., 3) of features (..., 6): one point or a batch."""
+        return jax.nn.relu(f @ self.w1 + self.b1) @ self.w2 + self.b2
+
+
+@jax.jit
+def _init_params(key: Array) -> tuple[Array, ...]:
+    # Jitted: drawn eagerly, each random op would compile on its own (seconds on a slow CPU).
+    shapes = ((FEATURE_DIM, HIDDEN_DIM), (HIDDEN_DIM,), (HIDDEN_DIM, OUTPUT_DIM), (OUTPUT_DIM,))
+    fan_ins = (FEATURE_DIM, FEATURE_DIM, HIDDEN_DIM, HIDDEN_DIM)
+    keys = jax.random.split(key, len(shapes))
+    return tuple(
+        jax.random.uniform(k, s, jnp.float32, -1.0, 1.0) / np.sqrt(f)
+        for k, s, f in zip(keys, shapes, fan_ins, strict=True)
+    )
+
+
+class FeatureConversionMLP(MLP):
+    """PCA features (..., 6) -> association features (..., 3) (Sec. III-C)."""
+
+
+class EigenvalueEstimationMLP(MLP):
+    """PCA features (..., 6) -> raw eigenvalues (..., 3) for Algorithm 1 (Sec. III-D)."""
+
+
+@dataclass(frozen=True)
+class GLOAMModel:
+    """Everything that turns a raw scan into association features and covariances."""
+
+    pca: FeaturePCA
+    conversion: FeatureConversionMLP
+    eigenvalue: EigenvalueEstimationMLP
+    eps: float = DEFAULT_EPS
+    backbone: str = "geometric"
+    backbone_options: dict[str, Any] = field(default_factory=dict)
+    version: int = MODEL_VERSION
+
+    def pca_features(self, raw: np.ndarray | Array) -> np.ndarray | Array:
+        """Backbone features (N, D) -> PCA features (N, 6), NumPy or JAX."""
+        if raw.shape[-1] != self.pca.input_dim:
+            raise InputError(
+                None,
+                f"features have {raw.shape[-1]} columns, the model's PCA expects "
+                f"{self.pca.input_dim} (backbone '{self.backbone}')",
+            )
+        return self.pca.transform(raw)
+
+
+def init_model(
+    key: Array,
+    pca: FeaturePCA,
+    *,
+    eps: float = DEFAULT_EPS,
+    backbone: str = "geometric",
+    backbone_options: dict[str, Any] | None = None,
+) -> GLOAMModel:
+    """A model with randomly initialised MLPs around a fitted PCA."""
+    if pca.components.shape[0] != FEATURE_DIM:
+        raise InputError(
+            None, f"the PCA must give {FEATURE_DIM} dimensions, not {pca.components.shape[0]}"
+        )
+    k_conv, k_eig = jax.random.split(key)
+    return GLOAMModel(
+        pca=pca,
+        conversion=FeatureConversionMLP.init(k_conv),
+        eigenvalue=EigenvalueEstimationMLP.init(k_eig),
+        eps=float(eps),
+        backbone=backbone,
+        backbone_options=dict(backbone_options or {}),
+    )
+
+
+def _arrays(model: GLOAMModel) -> dict[str, np.ndarray]:
+    out = {f"pca_{k}": np.asarray(v, np.float64) for k, v in model.pca._asdict().items()}
+    for prefix, mlp in (("conversion", model.conversion), ("eigenvalue", model.eigenvalue)):
+        out.update({f"{prefix}_{k}": np.asarray(v, np.float32) for k, v in mlp._asdict().items()})
+    return out
+
+
+def save_model(path: str | os.PathLike[str], model: GLOAMModel) -> None:
+    """Write the model as one ``.npz`` (arrays and a JSON ``metadata`` entry), atomically."""
+    metadata = {
+        "format": MODEL_FORMAT,
+        "version": model.version,
+        "eps": model.eps,
+        "backbone": model.backbone,
+        "backbone_options": model.backbone_options,
+    }
+    buffer = io.BytesIO()
+    # A 0-d unicode array, not a pickled object: the file loads with allow_pickle=False.
+    np.savez(buffer, metadata=np.array(json.dumps(metadata)), **_arrays(model))
+    write_atomic(path, buffer.getvalue())
+
+
+def _expected_shapes(d: int) -> dict[str, tuple[int, ...]]:
+    shapes = {
+        "pca_mean": (d,),
+        "pca_scale": (d,),
+        "pca_components": (FEATURE_DIM, d),
+        "pca_explained_variance_ratio": (FEATURE_DIM,),
+    }
+    for prefix in ("conversion", "eigenvalue"):
+        shapes |= {
+            f"{prefix}_w1": (FEATURE_DIM, HIDDEN_DIM),
+            f"{prefix}_b1": (HIDDEN_DIM,),
+            f"{prefix}_w2": (HIDDEN_DIM, OUTPUT_DIM),
+            f"{prefix}_b2": (OUTPUT_DIM,),
+        }
+    return shapes
+
+
+def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
+    """Read a file written by :func:`save_model`; a bad file is a one-line InputError."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "model file not found")
+    try:
+        npz = np.load(p, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise InputError(p, f"not a gloam-jax model file ({e})") from None
+    if not isinstance(npz, np.lib.npyio.NpzFile):
+        raise InputError(p, "not a gloam-jax model file (an .npy array, not an .npz)")
+    try:
+        with npz:
+            arrays = {k: npz[k] for k in npz.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as e:
+        raise InputError(p, f"not a gloam-jax model file ({e})") from None
+    try:
+        metadata = json.loads(str(arrays.pop("metadata")))
+    except (KeyError, json.JSONDecodeError):
+        raise InputError(p, "not a gloam-jax model file (no JSON metadata)") from None
+    if not isinstance(metadata, dict) or metadata.get("format") != MODEL_FORMAT:
+        raise InputError(p, "not a gloam-jax model file (metadata has no gloam-jax format tag)")
+    if metadata.get("version") != MODEL_VERSION:
+        raise InputError(
+            p,
+            f"model format version {metadata.get('version')} is not supported "
+            f"(this gloam-jax reads version {MODEL_VERSION})",
+        )
+    expected = _expected_shapes(arrays["pca_mean"].size if "pca_mean" in arrays else 0)
+    for name, shape in expected.items():
+        if name not in arrays:
+            raise InputError(p, f"model file has no '{name}' array")
+        if arrays[name].dtype.kind not in "fi":
+            raise InputError(p, f"'{name}' is not numeric (dtype {arrays[name].dtype})")
+        if arrays[name].shape != shape:
+            raise InputError(p, f"'{name}' has shape {arrays[name].shape}, expected {shape}")
+        if not np.all(np.isfinite(arrays[name])):
+            raise InputError(p, f"'{name}' contains NaN or infinite values")
+    eps = metadata.get("eps")
+    if not isinstance(eps, int | float) or not eps > 0:
+        raise InputError(p, f"eps must be a positive number, got {eps!r}")
+    backbone, options = metadata.get("backbone"), metadata.get("backbone_options")
+    if not isinstance(backbone, str) or not isinstance(options, dict):
+        raise InputError(p, "metadata needs a backbone name and a backbone_options object")
+
+    def mlp(cls: type[MLP], prefix: str) -> MLP:
+        return cls(*(jnp.asarray(arrays[f"{prefix}_{k}"]) for k in MLP._fields))
+
+    return GLOAMModel(
+        pca=FeaturePCA(*(arrays[f"pca_{k}"] for k in FeaturePCA._fields)),
+        conversion=mlp(FeatureConversionMLP, "conversion"),
+        eigenvalue=mlp(EigenvalueEstimationMLP, "eigenvalue"),
+        eps=float(eps),
+        backbone=backbone,
+        backbone_options=options,
+        version=MODEL_VERSION,
+    )

@@ -1,0 +1,172 @@
+"""Algorithm 1 (learned covariances), the two MLPs, and model files."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from gloam_jax import covariance as cov
+from gloam_jax.errors import InputError
+from gloam_jax.features import fit_pca
+from gloam_jax.models import (
+    EigenvalueEstimationMLP,
+    FeatureConversionMLP,
+    GLOAMModel,
+    init_model,
+    load_model,
+    save_model,
+)
+
+# Jitted once: op-by-op dispatch compiles every primitive separately, which is slower.
+learned = jax.jit(cov.learned)
+
+
+def random_covariances(rng, n):
+    A = rng.normal(size=(n, 3, 3))
+    return A @ A.transpose(0, 2, 1) / 3
+
+
+def test_algorithm1_properties():
+    rng = np.random.default_rng(0)
+    C = random_covariances(rng, 200)
+    e = rng.normal(size=(200, 3)).astype(np.float32)
+    e[:20] = [0.5, -1.0, 2.0]  # a negative value: clamped
+    eps = 1e-2
+    out = np.asarray(learned(jnp.asarray(C, jnp.float32), jnp.asarray(e), eps), np.float64)
+    values, vectors = np.linalg.eigh(C)
+    expected = np.maximum(np.sort(e, axis=1), eps)
+    expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+    # Eigenvectors of the k-NN covariance kept, each with its new eigenvalue, in ascending
+    # order: the smallest MLP value goes along the normal (C's smallest eigenvector).
+    for i in range(3):
+        v = vectors[:, :, i]
+        np.testing.assert_allclose(
+            np.einsum("nij,nj->ni", out, v), expected[:, i, None] * v, atol=2e-5
+        )
+    got = np.linalg.eigvalsh(out)
+    np.testing.assert_allclose(got, expected, atol=2e-5)
+    assert np.all(np.diff(got, axis=1) >= -1e-6)  # ascending
+    # Positive definite: the floor is eps / ||e'|| after the scaling (clamp first).
+    assert got.min() >= 0.99 * eps / np.linalg.norm(np.maximum(np.sort(e, 1), eps), axis=1).max()
+    np.testing.assert_allclose(np.linalg.norm(got, axis=1), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(got[:20], np.tile(expected[0], (20, 1)), atol=2e-5)
+    np.testing.assert_allclose(expected[0], np.array([eps, 0.5, 2.0]) / np.sqrt(eps**2 + 4.25))
+    np.testing.assert_allclose(out, out.transpose(0, 2, 1), atol=1e-6)
+
+
+def test_algorithm1_zero_outputs_and_padding_are_finite():
+    C = jnp.concatenate([jnp.eye(3)[None] * 0.1, jnp.zeros((1, 3, 3))])  # a padded zero row
+    e = jnp.zeros((2, 3))
+    out, grad = jax.jit(jax.value_and_grad(lambda e: cov.learned(C, e, 1e-3).sum()))(e)
+    assert np.isfinite(out) and np.all(np.isfinite(grad))
+    np.testing.assert_allclose(np.linalg.eigvalsh(learned(C, e, 1e-3)), 1 / np.sqrt(3), rtol=1e-5)
+
+
+def test_algorithm1_gradient_matches_finite_differences():
+    rng = np.random.default_rng(1)
+    with jax.enable_x64(True):
+        C = jnp.asarray(random_covariances(rng, 8))
+        # Distinct values away from eps, so sort and clamp are locally smooth.
+        e0 = jnp.asarray(rng.uniform(0.1, 2.0, (8, 3)))
+        W = jnp.asarray(rng.normal(size=(8, 3, 3)))
+
+        @jax.jit
+        def loss(e):
+            return jnp.sum(W * cov.learned(C, e, 1e-3))
+
+        grad_fn = jax.jit(jax.grad(loss))
+        grad = np.asarray(grad_fn(e0))
+        h = 1e-6
+        numeric = np.zeros((8, 3))
+        for idx in np.ndindex(8, 3):
+            step = jnp.zeros((8, 3)).at[idx].set(h)
+            numeric[idx] = (loss(e0 + step) - loss(e0 - step)) / (2 * h)
+        np.testing.assert_allclose(grad, numeric, rtol=1e-6, atol=1e-8)
+        # Below eps an output is clamped: no gradient flows to it.
+        clamped = e0.at[0, 0].set(-1.0)
+        assert grad_fn(clamped)[0, 0] == 0.0
+
+
+def test_mlps_per_point_and_batched():
+    key = jax.random.PRNGKey(0)
+    conv, eig = FeatureConversionMLP.init(key), EigenvalueEstimationMLP.init(key)
+    assert sum(x.size for x in jax.tree_util.tree_leaves(conv)) == 43
+    f = jnp.asarray(np.random.default_rng(1).normal(size=(50, 6)), jnp.float32)
+    batched = eig(f)
+    assert batched.shape == (50, 3) and conv(f[0]).shape == (3,)
+    np.testing.assert_allclose(jax.vmap(eig)(f), batched, rtol=1e-6)
+    np.testing.assert_allclose(eig(f[3]), batched[3], rtol=1e-6)
+    # A pytree: gradients have the MLP's type and shapes.
+    g = jax.jit(jax.grad(lambda m: jnp.sum(m(f) ** 2)))(eig)
+    assert isinstance(g, EigenvalueEstimationMLP) and g.w1.shape == (6, 4)
+    assert not np.allclose(FeatureConversionMLP.init(jax.random.PRNGKey(2)).w1, conv.w1)
+
+
+@pytest.fixture
+def model():
+    rng = np.random.default_rng(3)
+    raw = rng.normal(size=(500, 20)) @ rng.normal(size=(20, 20))
+    pca = fit_pca(raw)
+    return raw.astype(np.float32), init_model(
+        jax.random.PRNGKey(4), pca, eps=2e-3, backbone_options={"voxel_size": 0.25}
+    )
+
+
+def test_model_round_trip(tmp_path, model):
+    raw, m = model
+    path = tmp_path / "sub" / "model.npz"
+    save_model(path, m)
+    loaded = load_model(path)
+    assert isinstance(loaded, GLOAMModel)
+    assert (loaded.eps, loaded.backbone, loaded.backbone_options) == (
+        2e-3,
+        "geometric",
+        {"voxel_size": 0.25},
+    )
+    for a, b in zip(
+        jax.tree_util.tree_leaves((m.pca, m.conversion, m.eigenvalue)),
+        jax.tree_util.tree_leaves((loaded.pca, loaded.conversion, loaded.eigenvalue)),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # The frozen PCA and both MLPs apply identically after loading.
+    f, f2 = m.pca_features(raw), loaded.pca_features(raw)
+    np.testing.assert_array_equal(f, f2)
+    np.testing.assert_array_equal(m.eigenvalue(f), loaded.eigenvalue(f2))
+    np.testing.assert_array_equal(m.conversion(f), loaded.conversion(f2))
+    assert f.shape == (500, 6)
+    assert 0 < loaded.pca.explained_variance_ratio.sum() <= 1
+    with pytest.raises(InputError, match="20 .*expects|expects 20"):
+        loaded.pca_features(raw[:, :5])
+
+
+def test_bad_model_files(tmp_path, model):
+    _, m = model
+    with pytest.raises(InputError, match="model file not found"):
+        load_model(tmp_path / "missing.npz")
+    garbage = tmp_path / "garbage.npz"
+    garbage.write_bytes(b"\x00\x01 not a zip")
+    with pytest.raises(InputError, match="garbage.npz: not a gloam-jax model file"):
+        load_model(garbage)
+    bare = tmp_path / "bare.npz"
+    np.save(tmp_path / "bare.npy", np.zeros(3))
+    (tmp_path / "bare.npy").rename(bare)
+    with pytest.raises(InputError, match="an .npy array"):
+        load_model(bare)
+    plain = tmp_path / "plain.npz"
+    np.savez(plain, x=np.zeros(3))
+    with pytest.raises(InputError, match="no JSON metadata"):
+        load_model(plain)
+    future = tmp_path / "future.npz"
+    save_model(future, dataclasses.replace(m, version=99))
+    with pytest.raises(InputError, match="version 99 is not supported") as e:
+        load_model(future)
+    assert "\n" not in str(e.value)
+    broken = tmp_path / "broken.npz"
+    save_model(
+        broken, dataclasses.replace(m, conversion=m.conversion._replace(w1=jnp.zeros((5, 4))))
+    )
+    with pytest.raises(InputError, match=r"'conversion_w1' has shape \(5, 4\), expected \(6, 4\)"):
+        load_model(broken)
