@@ -117,6 +117,8 @@ def init_model(
         raise InputError(
             None, f"the PCA must give {FEATURE_DIM} dimensions, not {pca.components.shape[0]}"
         )
+    if not eps > 0:
+        raise InputError(None, f"eps must be positive, got {eps}")
     k_conv, k_eig = jax.random.split(key)
     return GLOAMModel(
         pca=pca,
@@ -206,7 +208,7 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
         if not np.all(np.isfinite(arrays[name])):
             raise InputError(p, f"'{name}' contains NaN or infinite values")
     eps = metadata.get("eps")
-    if not isinstance(eps, int | float) or not eps > 0:
+    if isinstance(eps, bool) or not isinstance(eps, int | float) or not eps > 0:
         raise InputError(p, f"eps must be a positive number, got {eps!r}")
     backbone, options = metadata.get("backbone"), metadata.get("backbone_options")
     if not isinstance(backbone, str) or not isinstance(options, dict):
