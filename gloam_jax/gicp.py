@@ -12,7 +12,7 @@ Pairs farther apart than ``max_correspondence_distance`` are dropped.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from functools import partial
+from functools import cached_property, partial
 from typing import Literal, NamedTuple
 
 import jax
@@ -69,6 +69,11 @@ class PreparedCloud:
     tree: KdTree
     num_dropped: int = 0  # NaN / inf points removed
 
+    @cached_property
+    def radius(self) -> float:
+        """Distance of the farthest point from the cloud's origin (m)."""
+        return float(np.sqrt(np.max(np.sum(self.points**2, axis=1))))
+
     _padded: dict[tuple, Cloud] = field(default_factory=dict, repr=False)
 
     def padded(self, size: int | None = None) -> Cloud:
@@ -111,11 +116,23 @@ def prepare(
     num_neighbors: int = 20,
     regularizer: str = "plane",
     source: str | None = None,
-    buckets: pc.StickyBuckets | None = None,
 ) -> PreparedCloud:
     """Drop invalid points, voxel-downsample, build the tree and the covariances: (N, 3+)."""
     points, dropped = pc.drop_invalid(np.asarray(points), source)
     points = pc.voxel_downsample(points[:, :3].astype(np.float64), downsampling_resolution)
+    cloud = build_cloud(points, num_neighbors, regularizer, source)
+    cloud.num_dropped = dropped
+    return cloud
+
+
+def build_cloud(
+    points: np.ndarray,
+    num_neighbors: int,
+    regularizer: str = "plane",
+    source: str | None = None,
+    buckets: pc.StickyBuckets | None = None,
+) -> PreparedCloud:
+    """Tree and regularised k-NN covariances of clean, downsampled points (N, 3) float64."""
     tree = KdTree(points, source)
     neighbours, _ = tree.query(points, num_neighbors)
     # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
@@ -124,7 +141,7 @@ def prepare(
     padded_neighbours = pc.pad(neighbours, size)[0]
     covs = _covariances(jnp.asarray(padded_points), jnp.asarray(padded_neighbours), regularizer)
     covs = np.asarray(covs, dtype=np.float64)[: len(points)]
-    return PreparedCloud(points, covs, tree, dropped)
+    return PreparedCloud(points, covs, tree)
 
 
 def _whiten(C: Array, r: Array) -> Array:
@@ -159,7 +176,11 @@ def _pairs(T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Arr
     d2_best = jnp.take_along_axis(d2, j[:, None], axis=1)[:, 0]
     partner = jnp.take_along_axis(candidates, j[:, None], axis=1)[:, 0]
     inlier = source.mask & (d2_best < max_d2)
-    C = target.covs[partner] + R @ source.covs @ R.T
+    # The weights hold the rotation fixed within a step, as GICP does (H of
+    # gauss_newton_system); it also keeps the Cholesky factor out of the Jacobian, which makes
+    # each LM step several times cheaper.
+    R_w = jax.lax.stop_gradient(R)
+    C = target.covs[partner] + R_w @ source.covs @ R_w.T
     e = _whiten(C, target.points[partner] - a)
     return _Pairs(jnp.where(inlier[:, None], e, 0.0), inlier, a, C)
 
@@ -170,33 +191,6 @@ def _residuals(xi: Array, args) -> Array:
 
 
 _ADJOINTS = {"unrolled": optx.RecursiveCheckpointAdjoint(), "implicit": optx.ImplicitAdjoint()}
-
-
-@partial(jax.jit, static_argnames=("inner_steps", "adjoint"))
-def solve_round(
-    T0,
-    source: Cloud,
-    target: Cloud,
-    candidates,
-    valid,
-    max_d2,
-    inner_steps: int,
-    adjoint: str = "unrolled",
-) -> tuple[Array, Array]:
-    """A few LM steps from T0 over fixed candidate sets: (T (4, 4), xi (6,))."""
-    # The normal equations (6 x 6) are much cheaper than a QR of the (3N x 6) Jacobian.
-    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
-    args = (T0, source, target, candidates, valid, max_d2)
-    sol = optx.least_squares(
-        _residuals,
-        solver,
-        jnp.zeros(6, T0.dtype),
-        args,
-        max_steps=inner_steps,
-        adjoint=_ADJOINTS[adjoint],
-        throw=False,
-    )
-    return geo.se3_exp(sol.value) @ T0, sol.value
 
 
 @jax.jit
@@ -217,6 +211,44 @@ def gauss_newton_system(T, source: Cloud, target: Cloud, candidates, valid, max_
     H = jnp.einsum("nki,nkj->ij", J, J)
     b = jnp.einsum("nki,nk->i", J, e)
     return H, b, jnp.sum(e * e), jnp.sum(inlier)
+
+
+def _lm(T0, source: Cloud, target: Cloud, candidates, valid, max_d2, inner_steps, adjoint):
+    """A few LM steps from T0 over fixed candidate sets: the increment xi (6,)."""
+    # The normal equations (6 x 6) are much cheaper than a QR of the (3N x 6) Jacobian.
+    solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
+    args = (T0, source, target, candidates, valid, max_d2)
+    sol = optx.least_squares(
+        _residuals,
+        solver,
+        jnp.zeros(6, T0.dtype),
+        args,
+        max_steps=inner_steps,
+        adjoint=_ADJOINTS[adjoint],
+        throw=False,
+    )
+    return sol.value
+
+
+@partial(jax.jit, static_argnames=("inner_steps", "adjoint"))
+def solve_round(
+    T0,
+    source: Cloud,
+    target: Cloud,
+    candidates,
+    valid,
+    max_d2,
+    inner_steps: int,
+    adjoint: str = "unrolled",
+) -> tuple[Array, Array, tuple]:
+    """One outer round: LM from T0, then the Gauss-Newton system at the result.
+
+    Returns T (4, 4), the increment xi (6,) with ``T = exp(xi) @ T0``, and
+    :func:`gauss_newton_system`'s (H, b, error, inliers) at T, whose step decides convergence.
+    """
+    xi = _lm(T0, source, target, candidates, valid, max_d2, inner_steps, adjoint)
+    T = geo.se3_exp(xi) @ T0
+    return T, xi, gauss_newton_system(T, source, target, candidates, valid, max_d2)
 
 
 def align_prepared(
@@ -243,7 +275,7 @@ def align_prepared(
             moved, config.num_candidates, config.max_correspondence_distance
         )
         cand, valid = pc.pad(cand, size)[0], pc.pad(valid, size)[0]
-        T_new, xi = solve_round(
+        _, xi, system = solve_round(
             jnp.asarray(T, dtype=_real()),
             src,
             tgt,
@@ -254,25 +286,32 @@ def align_prepared(
             config.adjoint,
         )
         # Compose in float64 on the host so that many rounds do not accumulate float32 error.
-        xi = np.asarray(xi, dtype=np.float64)
-        T = np.asarray(geo.se3_exp_jit(xi), dtype=np.float64) @ T
+        T_round, T = T, np.asarray(geo.se3_exp_jit(np.asarray(xi, np.float64)), np.float64) @ T
         T[:3, :3] = _orthonormalize(T[:3, :3])
-        small_rotation = np.linalg.norm(xi[3:]) < config.rotation_eps
-        if small_rotation and np.linalg.norm(xi[:3]) < config.translation_eps:
+        H, b, error, inliers = (np.asarray(x, np.float64) for x in system)
+        # Converged when the next Gauss-Newton step would be below the thresholds (small_gicp's
+        # criterion), provided the candidates are still fresh: no point moved farther than a
+        # tenth of the correspondence distance since they were found.
+        step = _gauss_newton_step(H, b)
+        fresh = _largest_shift(T_round, T, source.radius) < 0.1 * config.max_correspondence_distance
+        small = np.linalg.norm(step[3:]) < config.rotation_eps
+        if inliers > 0 and fresh and small and np.linalg.norm(step[:3]) < config.translation_eps:
             converged = True
             break
-    H, b, error, inliers = gauss_newton_system(
-        jnp.asarray(T, dtype=_real()), src, tgt, jnp.asarray(cand), jnp.asarray(valid), max_d2
-    )
-    return RegistrationResult(
-        T,
-        converged,
-        iterations,
-        int(inliers),
-        np.asarray(H, float),
-        np.asarray(b, float),
-        float(error),
-    )
+    return RegistrationResult(T, converged, iterations, int(inliers), H, b, float(error))
+
+
+def _largest_shift(T_from: np.ndarray, T_to: np.ndarray, radius: float) -> float:
+    """Upper bound on how far any source point within ``radius`` of the source origin moves
+    from ``T_from a`` to ``T_to a`` (m): the origin's shift plus the rotation's sweep."""
+    D = T_to @ np.linalg.inv(T_from)
+    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
+    return float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3]) + angle * radius)
+
+
+def _gauss_newton_step(H: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``-H^-1 b`` (6,), zero along directions H does not constrain."""
+    return -np.linalg.lstsq(H, b, rcond=1e-12)[0]
 
 
 def _orthonormalize(R: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ import numpy as np
 from gloam_jax import geometry as geo
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
-from gloam_jax.gicp import GICPConfig, PreparedCloud, align_prepared, prepare
+from gloam_jax.gicp import GICPConfig, PreparedCloud, align_prepared, build_cloud
 from gloam_jax.neighbors import KdTree
 
 
@@ -110,6 +110,11 @@ class LocalMap:
         self.cloud = PreparedCloud(points, covs, KdTree(points, "local map"))
         self.last_pose = T_world_lidar
 
+    def capacity(self) -> int:
+        """Points the map will hold once full, at the largest keyframe so far: padding the
+        map to this from the start keeps its shape, and so the solver's, fixed."""
+        return self.max_keyframes * max(len(k[0]) for k in self.keyframes)
+
 
 def _needs_keyframe(last: np.ndarray | None, T: np.ndarray, config: OdometryConfig) -> bool:
     if last is None:
@@ -159,13 +164,8 @@ class Odometry:
         source: str | None,
     ) -> PreparedCloud:
         cfg = self.config
-        points, status.num_dropped = pc.drop_invalid(scan, source)
-        if times is not None:
-            finite = np.all(np.isfinite(scan[:, :3]), axis=1)
-            times = times[finite]
-        r = np.linalg.norm(points[:, :3], axis=1)
-        keep = (r >= cfg.min_range) & (r <= cfg.max_range)
-        points = points[keep, :3].astype(np.float64)
+        keep, status.num_dropped = pc.range_mask(scan, cfg.min_range, cfg.max_range, source)
+        points = scan[keep, :3].astype(np.float64)
         if len(points) == 0:
             raise InputError(source, f"no points between {cfg.min_range} and {cfg.max_range} m")
         t = times[keep] if times is not None else azimuth_times(points, cfg.sweep_duration)
@@ -176,14 +176,7 @@ class Odometry:
         if cfg.deskew and self.poses:
             size = self.buckets("deskew", len(points))
             points = deskew(points, reduced[:, 3], self.velocity, frame_dt, size)
-        return prepare(
-            points,
-            downsampling_resolution=0.0,
-            num_neighbors=cfg.num_neighbors,
-            regularizer=cfg.regularizer,
-            source=source,
-            buckets=self.buckets,
-        )
+        return build_cloud(points, cfg.num_neighbors, cfg.regularizer, source, self.buckets)
 
     def register_frame(
         self,
@@ -211,6 +204,7 @@ class Odometry:
             result = align_prepared(target, cloud, init, cfg.gicp, self.buckets)
             T = self.poses[-1] @ result.T_target_source
         else:
+            self.buckets("target", self.map.capacity())
             result = align_prepared(target, cloud, T_pred, cfg.gicp, self.buckets)
             T = result.T_target_source
         status.iterations, status.num_inliers = result.iterations, result.num_inliers

@@ -11,17 +11,23 @@ import numpy as np
 
 from gloam_jax.errors import InputError
 
-# Padded sizes: powers of two from 1 Ki to 256 Ki points.
-BUCKETS = tuple(1 << k for k in range(10, 19))
+# Padded sizes from 1 Ki to 448 Ki points, four per octave (1, 1.25, 1.5, 1.75 times a power
+# of two): at most 25 % padding, where powers of two alone waste up to half the work.
+BUCKETS = tuple(m << k for k in range(8, 17) for m in (4, 5, 6, 7))
 
 
-def drop_invalid(points: np.ndarray, source: str | None = None) -> tuple[np.ndarray, int]:
-    """Remove rows with NaN or inf: (N, D) -> ((M, D), number removed). Empty input is an error."""
+def _check_shape(points: np.ndarray, source: str | None) -> np.ndarray:
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] < 3:
         raise InputError(source, f"expected an (N, 3+) point array, got shape {points.shape}")
     if len(points) == 0:
         raise InputError(source, "empty scan (0 points)")
+    return points
+
+
+def drop_invalid(points: np.ndarray, source: str | None = None) -> tuple[np.ndarray, int]:
+    """Remove rows with NaN or inf: (N, D) -> ((M, D), number removed). Empty input is an error."""
+    points = _check_shape(points, source)
     finite = np.all(np.isfinite(points[:, :3]), axis=1)
     kept = points[finite]
     if len(kept) == 0:
@@ -29,32 +35,48 @@ def drop_invalid(points: np.ndarray, source: str | None = None) -> tuple[np.ndar
     return kept, int(len(points) - len(kept))
 
 
+def range_mask(
+    points: np.ndarray, min_range: float, max_range: float, source: str | None = None
+) -> tuple[np.ndarray, int]:
+    """Points of an (N, 3+) scan whose distance from the sensor lies in [min_range, max_range]:
+    (mask (N,), number of NaN / inf points, which the mask also drops). One pass over the
+    scan, for the per-frame path; bad shapes and empty or all-invalid scans are errors."""
+    points = _check_shape(points, source)
+    xyz = points[:, :3]
+    r2 = np.einsum("ij,ij->i", xyz, xyz)
+    invalid = int(np.count_nonzero(~np.isfinite(r2)))
+    if invalid == len(points):
+        raise InputError(source, f"all {len(points)} points are NaN or infinite")
+    return (r2 >= min_range * min_range) & (r2 <= max_range * max_range), invalid
+
+
 def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
     """Keep points whose distance from the sensor lies in [min_range, max_range]: (N, D)."""
-    r = np.linalg.norm(points[:, :3], axis=1)
-    return points[(r >= min_range) & (r <= max_range)]
+    return points[range_mask(points, min_range, max_range)[0]]
+
+
+def voxel_index(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's voxel (N,) and the points per voxel (M,), voxels in sorted key order."""
+    # Offsetting by 2^20 voxels before truncating makes truncation a floor; 21 bits per axis
+    # cover +-1e6 voxels, i.e. +-100 km at 0.1 m.
+    keys = (points[:, :3] * (1.0 / voxel_size) + float(1 << 20)).astype(np.int64)
+    if len(keys) and (keys.min() < 0 or keys.max() >= 1 << 21):
+        raise ValueError(f"points beyond +-{(1 << 20) * voxel_size:.0f} m cannot be voxelised")
+    flat = (keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2]
+    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    return inverse.ravel(), counts
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Mean of the rows (all columns) falling in each voxel of ``voxel_size`` metres: (N, D).
 
-    Output order follows the voxels' first occurrence in the input, so it is deterministic.
+    Output rows follow the voxels' sorted keys, so they are deterministic.
     """
     if voxel_size <= 0:
         return points
-    keys = np.floor(points[:, :3] / voxel_size).astype(np.int64)
-    # 21 bits per axis: +-1e6 voxels, i.e. +-100 km at 0.1 m.
-    keys = keys + (1 << 20)
-    flat = (keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2]
-    _, first, inverse, counts = np.unique(
-        flat, return_index=True, return_inverse=True, return_counts=True
-    )
-    order = np.argsort(first)  # voxel ids in order of first appearance
-    rank = np.empty_like(order)
-    rank[order] = np.arange(len(order))
-    inverse = rank[inverse.ravel()]
-    sums = [np.bincount(inverse, weights=col, minlength=len(first)) for col in points.T]
-    return (np.stack(sums, axis=1) / counts[order][:, None]).astype(points.dtype)
+    inverse, counts = voxel_index(points, voxel_size)
+    sums = [np.bincount(inverse, weights=col, minlength=len(counts)) for col in points.T]
+    return (np.stack(sums, axis=1) / counts[:, None]).astype(points.dtype)
 
 
 def bucket_size(n: int, buckets: tuple[int, ...] = BUCKETS) -> int:

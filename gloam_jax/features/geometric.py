@@ -26,6 +26,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.spatial import cKDTree
 
+from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
 
 EIGEN_FEATURES = (
@@ -56,10 +57,7 @@ _EIGEN_FLOOR = 1e-10
 
 def _voxelize(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Voxel means (M, 3) float64, each point's voxel (N,) and points per voxel (M,)."""
-    keys = np.floor(xyz / size).astype(np.int64) + (1 << 20)  # 21 bits per axis, as pointcloud
-    flat = (keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2]
-    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
+    inverse, counts = pc.voxel_index(xyz, size)
     sums = [np.bincount(inverse, weights=col, minlength=len(counts)) for col in xyz.T]
     return np.stack(sums, axis=1) / counts[:, None], inverse, counts
 
