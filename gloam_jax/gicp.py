@@ -2,9 +2,17 @@
 
 Registration estimates ``T_target_source``. Each outer round finds, on the host, the K
 nearest target points of every transformed source point (a fixed ``(N, K)`` candidate set);
-a jitted solve then runs a few Levenberg-Marquardt steps on the se(3) increment ``xi`` of
-``T = exp(xi) @ T_round``, choosing each source point's partner among its candidates at the
-current estimate. The residual of a pair is ``b - T a``, whitened by the Cholesky factor of
+a jitted solve then runs a few Levenberg-Marquardt steps on the increment ``xi = (rho, phi)``
+of ``T = retract(xi, T_round)``, choosing each source point's partner among its candidates at
+the current estimate.
+
+The increment rotates the source about its own origin (the sensor) by ``exp(phi)`` and shifts
+it by ``rho``, both in target axes. Unlike a left se(3) increment, which rotates about the
+target's origin (kilometres away in a long drive), it keeps rotation and translation
+decoupled and the Gauss-Newton matrix ``H`` well scaled wherever the sensor is: its blocks are
+the information on the sensor's position (m) and attitude (rad).
+
+The residual of a pair is ``b - T a``, whitened by the Cholesky factor of
 ``C_b + R C_a R^T`` (Segal et al., 2009), so the squared norm is the Mahalanobis distance.
 Pairs farther apart than ``max_correspondence_distance`` are dropped.
 """
@@ -92,8 +100,9 @@ class PreparedCloud:
 
 
 class RegistrationResult(NamedTuple):
-    """Outcome of :func:`align`; ``H``, ``b`` and ``error`` are the Gauss-Newton system and the
-    sum of squared whitened residuals at the final estimate (tangent order of geometry)."""
+    """Outcome of :func:`align`; ``H``, ``b`` and ``error`` are the Gauss-Newton system over
+    the increment of :func:`retract` and the sum of squared whitened residuals at the final
+    estimate."""
 
     T_target_source: np.ndarray
     converged: bool
@@ -185,9 +194,33 @@ def _pairs(T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Arr
     return _Pairs(jnp.where(inlier[:, None], e, 0.0), inlier, a, C)
 
 
+def retract(xi: Array, T0: Array) -> Array:
+    """``T0`` rotated by ``exp(phi)`` about its own origin, then shifted by ``rho``, with
+    ``xi = (rho, phi)`` (6,) in the axes ``T0`` maps into: (4, 4)."""
+    return geo.make_transform(geo.so3_exp(xi[3:]) @ T0[:3, :3], T0[:3, 3] + xi[:3])
+
+
+_retract_jit = jax.jit(retract)
+_so3_log_jit = jax.jit(geo.so3_log)
+
+
+def increment(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
+    """The ``xi`` (6,) with ``retract(xi, T_from) = T_to``, in float64 on the host."""
+    phi = np.asarray(_so3_log_jit(T_to[:3, :3] @ T_from[:3, :3].T), np.float64)
+    return np.r_[T_to[:3, 3] - T_from[:3, 3], phi]
+
+
+def retract_host(xi: np.ndarray, T0: np.ndarray) -> np.ndarray:
+    """:func:`retract` in float64 on the host, with an orthonormal rotation: (4, 4)."""
+    T = np.array(_retract_jit(np.asarray(xi, np.float64), np.asarray(T0, np.float64)), np.float64)
+    u, _, vt = np.linalg.svd(T[:3, :3])
+    T[:3, :3] = u @ vt
+    return T
+
+
 def _residuals(xi: Array, args) -> Array:
     T0, source, target, candidates, valid, max_d2 = args
-    return _pairs(geo.se3_exp(xi) @ T0, source, target, candidates, valid, max_d2).e
+    return _pairs(retract(xi, T0), source, target, candidates, valid, max_d2).e
 
 
 _ADJOINTS = {"unrolled": optx.RecursiveCheckpointAdjoint(), "implicit": optx.ImplicitAdjoint()}
@@ -197,14 +230,15 @@ _ADJOINTS = {"unrolled": optx.RecursiveCheckpointAdjoint(), "implicit": optx.Imp
 def gauss_newton_system(T, source: Cloud, target: Cloud, candidates, valid, max_d2):
     """H = J^T J, b = J^T e, error = e.e and the inlier count at T.
 
-    J is the whitened residuals' Jacobian with respect to the left increment xi = (rho, phi),
-    ``d(b - exp(xi) T a)/d xi = -[I, -hat(T a)]``, with the weights held fixed as GICP does.
+    J is the whitened residuals' Jacobian with respect to the increment xi = (rho, phi) of
+    :func:`retract`, ``d(b - exp(phi) R a - t - rho)/d xi = -[I, -hat(R a)]``, with the weights
+    held fixed as GICP does.
     """
     pairs = _pairs(T, source, target, candidates, valid, max_d2)
     p, e, inlier = pairs.moved, pairs.e, pairs.inlier
     eye = jnp.broadcast_to(jnp.eye(3, dtype=p.dtype), (p.shape[0], 3, 3))
     d_rho = -eye
-    d_phi = geo.hat(p)  # d(-exp(xi) p)/d phi = hat(p)
+    d_phi = geo.hat(p - T[:3, 3])  # d(-exp(phi) q)/d phi = hat(q), q = R a
     columns = jnp.concatenate([d_rho, d_phi], axis=-1)  # (N, 3, 6)
     J = jax.vmap(lambda col: _whiten(pairs.C, col), in_axes=2, out_axes=2)(columns)
     J = jnp.where(inlier[:, None, None], J, 0.0)
@@ -243,11 +277,11 @@ def solve_round(
 ) -> tuple[Array, Array, tuple]:
     """One outer round: LM from T0, then the Gauss-Newton system at the result.
 
-    Returns T (4, 4), the increment xi (6,) with ``T = exp(xi) @ T0``, and
+    Returns T (4, 4), the increment xi (6,) with ``T = retract(xi, T0)``, and
     :func:`gauss_newton_system`'s (H, b, error, inliers) at T, whose step decides convergence.
     """
     xi = _lm(T0, source, target, candidates, valid, max_d2, inner_steps, adjoint)
-    T = geo.se3_exp(xi) @ T0
+    T = retract(xi, T0)
     return T, xi, gauss_newton_system(T, source, target, candidates, valid, max_d2)
 
 
@@ -286,8 +320,7 @@ def align_prepared(
             config.adjoint,
         )
         # Compose in float64 on the host so that many rounds do not accumulate float32 error.
-        T_round, T = T, np.asarray(geo.se3_exp_jit(np.asarray(xi, np.float64)), np.float64) @ T
-        T[:3, :3] = _orthonormalize(T[:3, :3])
+        T_round, T = T, retract_host(np.asarray(xi, np.float64), T)
         H, b, error, inliers = (np.asarray(x, np.float64) for x in system)
         # Converged when the next Gauss-Newton step would be below the thresholds (small_gicp's
         # criterion), provided the candidates are still fresh: no point moved farther than a
@@ -312,11 +345,6 @@ def _largest_shift(T_from: np.ndarray, T_to: np.ndarray, radius: float) -> float
 def _gauss_newton_step(H: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``-H^-1 b`` (6,), zero along directions H does not constrain."""
     return -np.linalg.lstsq(H, b, rcond=1e-12)[0]
-
-
-def _orthonormalize(R: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(R)
-    return u @ vt
 
 
 def align(

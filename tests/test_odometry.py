@@ -12,7 +12,14 @@ from gloam_jax.cli import app
 from gloam_jax.config import dump_config, load_config
 from gloam_jax.errors import InputError
 from gloam_jax.gicp import GICPConfig, align_prepared, prepare
-from gloam_jax.odometry import Odometry, OdometryConfig, azimuth_times, deskew, is_degenerate
+from gloam_jax.odometry import (
+    Odometry,
+    OdometryConfig,
+    azimuth_times,
+    deskew,
+    remap,
+    weak_directions,
+)
 from gloam_jax.simulate import simulate
 
 
@@ -74,12 +81,24 @@ def corridor(seed: int, length: float = 200.0, n: int = 30000) -> np.ndarray:
     return np.c_[x, y, z]
 
 
-def test_degenerate_corridor_is_flagged():
-    target, source = prepare(corridor(0)), prepare(corridor(1))
+def test_degenerate_corridor_is_flagged_and_remapped():
+    target = prepare(corridor(0))
+    T_true = np.eye(4)
+    T_true[:3, 3] = [0.7, 0.3, 0.0]  # along the corridor (unseen) and across it (seen)
+    source_points = corridor(1) - T_true[:3, 3]
+    source = prepare(source_points[np.abs(source_points[:, 0]) < 90])
     result = align_prepared(target, source, None, GICPConfig())
-    threshold = OdometryConfig().degeneracy_threshold
-    assert is_degenerate(result.H, threshold)
-    assert not is_degenerate(np.diag([1e5, 2e5, 3e5, 1e7, 2e7, 3e7]), threshold)
+    config = OdometryConfig()
+    weak = weak_directions(result.H, config.lever_arm, config.degeneracy_threshold)
+    assert weak.shape[1] == 1 and abs(weak[0, 0]) > 0.99  # the corridor's axis, x
+    strong = np.diag([1e5, 2e5, 3e5, 1e7, 2e7, 3e7])
+    assert weak_directions(strong, config.lever_arm, config.degeneracy_threshold).shape[1] == 0
+    # Remapping keeps the registration across the corridor and the prior along it.
+    prior = np.eye(4)
+    prior[:3, 3] = [0.5, 0.0, 0.0]
+    T = remap(prior, result.T_target_source, weak, config.lever_arm)
+    assert abs(T[0, 3] - 0.5) < 0.01 and abs(T[1, 3] - 0.3) < 0.02
+    np.testing.assert_allclose(T[:3, :3], result.T_target_source[:3, :3], atol=1e-3)
 
 
 def test_bad_scans_fall_back_on_the_motion_prior(sim_sequence):
