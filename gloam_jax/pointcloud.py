@@ -95,9 +95,12 @@ class StickyBuckets:
         self._floor: dict[str, int] = {}
 
     def __call__(self, role: str, n: int) -> int:
-        size = max(bucket_size(n), self._floor.get(role, 0))
-        self._floor[role] = size
-        return size
+        floor = self._floor.get(role, 0)
+        if n > floor:
+            # 20 % headroom over the largest seen: scans vary by a few percent, and each
+            # growth step costs a compilation.
+            floor = self._floor[role] = bucket_size(int(n * 1.2))
+        return floor
 
 
 def pad(array: np.ndarray, size: int, fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
