@@ -240,13 +240,23 @@ def _run_dir(out: Path) -> Path:
 
 
 def _run_odometry(
-    data: Path, sequence: str, config_path: Path | None, frames: int | None, run_dir: Path
+    data: Path,
+    sequence: str,
+    config_path: Path | None,
+    frames: int | None,
+    run_dir: Path,
+    weights: Path | None = None,
+    features: Path | None = None,
 ) -> dict:
+    import dataclasses
+
     from gloam_jax.config import load_config
     from gloam_jax.io import KittiSequence
     from gloam_jax.pipeline import run_sequence
 
     config = load_config(config_path)
+    if weights is not None:
+        config = dataclasses.replace(config, model=str(weights))
     total = len(KittiSequence(data, sequence)) if frames is None else frames
     with _progress() as bar:
         task = bar.add_task(f"odometry {sequence}", total=total, rate="")
@@ -254,7 +264,9 @@ def _run_odometry(
         def step(i: int, ms: float) -> None:
             bar.update(task, completed=i + 1, rate=f"{ms:.0f} ms/frame")
 
-        result = run_sequence(data, sequence, config, run_dir, frames=frames, progress=step)
+        result = run_sequence(
+            data, sequence, config, run_dir, frames=frames, progress=step, features_dir=features
+        )
     if "per_length" in result:
         console.print(_metrics_table(result, f"sequence {sequence}: estimate vs ground truth"))
     elif "rte_unavailable" in result:
@@ -274,7 +286,8 @@ def _run_odometry(
         "Examples:\n\n"
         "  gloam run data/sim --sequence 00\n\n"
         "  gloam run /data/kitti --sequence 07 --config configs/gicp.yaml --frames 500 "
-        "--out results/gicp"
+        "--out results/gicp\n\n"
+        "  gloam run data/sim --sequence 00 --config configs/gloam.yaml --weights model.npz"
     )
 )
 @_user_errors
@@ -286,9 +299,70 @@ def run(
     out: Annotated[Path, typer.Option(help="Results root; a timestamped run inside.")] = Path(
         "results"
     ),
+    weights: Annotated[
+        Path | None, typer.Option(help="Model file for the learned methods (gloam init-model).")
+    ] = None,
+    features: Annotated[
+        Path | None,
+        typer.Option(help="Folder of per-scan features (NNNNNN.npy/.txt) instead of the model's."),
+    ] = None,
 ) -> None:
     """Run LiDAR odometry on a KITTI-layout sequence (real or simulated) and score it."""
-    _run_odometry(data, sequence, config, frames, _run_dir(out))
+    _run_odometry(data, sequence, config, frames, _run_dir(out), weights, features)
+
+
+@app.command(
+    name="init-model",
+    epilog="Example:\n\n  gloam init-model data/sim --sequences 05 07 --out model.npz",
+)
+@_user_errors
+def init_model(
+    data: Annotated[Path, typer.Argument(help="KITTI-layout root with training sequences.")],
+    sequences: Annotated[list[str], typer.Option(help="Training sequence ids.")],
+    out: Annotated[Path, typer.Option(help="Model file to write (.npz).")] = Path("model.npz"),
+    every: Annotated[int, typer.Option(min=1, help="Use every N-th scan for the PCA.")] = 25,
+    backbone: Annotated[str, typer.Option(help="Feature backbone: geometric.")] = "geometric",
+    features: Annotated[
+        Path | None, typer.Option(help="Fit on per-scan feature files here instead.")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="MLP initialisation seed.")] = 0,
+) -> None:
+    """Fit the frozen PCA on training scans and write a model file with untrained MLPs."""
+    import jax
+
+    from gloam_jax.features import fit_pca, get_backbone
+    from gloam_jax.io import KittiSequence
+    from gloam_jax.models import init_model as make_model
+    from gloam_jax.models import save_model
+
+    extractor = (
+        get_backbone("precomputed", folder=features)
+        if features is not None
+        else get_backbone(backbone)
+    )
+    rows = []
+    with _progress() as bar:
+        for name in sequences:
+            seq = KittiSequence(data, name)
+            frames = range(0, len(seq), every)
+            task = bar.add_task(f"features {name}", total=len(frames), rate="")
+            for i in frames:
+                rows.append(extractor(seq.scan(i), path=seq.scan_path(i), frame=i))
+                bar.advance(task)
+    pca = fit_pca(rows, seed=seed)
+    model = make_model(
+        jax.random.PRNGKey(seed),
+        pca,
+        backbone=extractor.name,
+        # A folder of files is the user's, not the model's: runs name theirs with --features.
+        backbone_options={} if features is not None else extractor.options(),
+    )
+    save_model(out, model)
+    console.print(
+        f"PCA on {sum(len(r) for r in rows)} points from {len(rows)} scans keeps "
+        f"{100 * float(sum(pca.explained_variance_ratio)):.1f} % of the variance; "
+        f"model (untrained MLPs, seed {seed}): {out}"
+    )
 
 
 @app.command(epilog="Example:\n\n  gloam demo --frames 150 --out results")

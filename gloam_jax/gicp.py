@@ -30,10 +30,12 @@ import numpy as np
 import optimistix as optx
 from jax import Array
 
+from gloam_jax import association
 from gloam_jax import covariance as cov
 from gloam_jax import geometry as geo
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
+from gloam_jax.models import Learned
 from gloam_jax.neighbors import KdTree
 
 
@@ -61,11 +63,13 @@ class GICPConfig:
 
 
 class Cloud(NamedTuple):
-    """Device-side padded cloud: points (P, 3), covariances (P, 3, 3), mask (P,)."""
+    """Device-side padded cloud: points (P, 3), covariances (P, 3, 3), mask (P,) and the
+    association features (P, F) (F = 0 for plain GICP)."""
 
     points: Array
     covs: Array
     mask: Array
+    features: Array
 
 
 @dataclass
@@ -75,6 +79,7 @@ class PreparedCloud:
     points: np.ndarray  # (N, 3)
     covs: np.ndarray  # (N, 3, 3)
     tree: KdTree
+    features: np.ndarray | None = None  # (N, F) for data association; None: none (F = 0)
     num_dropped: int = 0  # NaN / inf points removed
 
     @cached_property
@@ -93,8 +98,14 @@ class PreparedCloud:
         points, mask = pc.pad(self.points, size)
         covs, _ = pc.pad(self.covs, size)
         covs[len(self.points) :] = np.eye(3)  # keeps padded rows finite
+        features = np.zeros((len(self.points), 0)) if self.features is None else self.features
         real = _real()
-        cloud = Cloud(jnp.asarray(points, real), jnp.asarray(covs, real), jnp.asarray(mask))
+        cloud = Cloud(
+            jnp.asarray(points, real),
+            jnp.asarray(covs, real),
+            jnp.asarray(mask),
+            jnp.asarray(pc.pad(features, size)[0], real),
+        )
         self._padded[key] = cloud
         return cloud
 
@@ -114,8 +125,24 @@ class RegistrationResult(NamedTuple):
 
 
 @partial(jax.jit, static_argnames=("regularizer",))
-def _covariances(points: Array, neighbours: Array, regularizer: str) -> Array:
-    return cov.REGULARIZERS[regularizer](cov.knn_covariances(points, neighbours))
+def cloud_attributes(
+    points: Array, neighbours: Array, pca_features: Array, learned: Learned, regularizer: str
+) -> tuple[Array, Array]:
+    """Covariances (N, 3, 3) and association features (N, F) of a cloud: points (N, 3),
+    k-NN indices (N, k), PCA features (N, 6) (any width when ``learned`` uses none).
+
+    Plain GICP regularises the k-NN covariances (``regularizer``) and has no features (F = 0);
+    a learned eigenvalue MLP replaces the regulariser (Algorithm 1), a conversion MLP gives
+    the features of data association (F = 3).
+    """
+    raw = cov.knn_covariances(points, neighbours)
+    if learned.eigenvalue is None:
+        covs = cov.REGULARIZERS[regularizer](raw)
+    else:
+        covs = cov.learned(raw, learned.eigenvalue(pca_features.astype(raw.dtype)), learned.eps)
+    if learned.conversion is None:
+        return covs, jnp.zeros((points.shape[0], 0), raw.dtype)
+    return covs, learned.conversion(pca_features.astype(raw.dtype))
 
 
 def prepare(
@@ -140,17 +167,30 @@ def build_cloud(
     regularizer: str = "plane",
     source: str | None = None,
     buckets: pc.StickyBuckets | None = None,
+    pca_features: np.ndarray | None = None,
+    learned: Learned | None = None,
 ) -> PreparedCloud:
-    """Tree and regularised k-NN covariances of clean, downsampled points (N, 3) float64."""
+    """Tree, covariances and association features of clean, downsampled points (N, 3)
+    float64; ``pca_features`` (N, 6) feed the ``learned`` parts (see cloud_attributes)."""
+    learned = Learned() if learned is None else learned
     tree = KdTree(points, source)
     neighbours, _ = tree.query(points, num_neighbors)
+    if pca_features is None:
+        if learned.eigenvalue is not None or learned.conversion is not None:
+            raise InputError(source, "learned covariances or association need point features")
+        pca_features = np.zeros((len(points), 0))
     # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
     size = pc.bucket_size(len(points)) if buckets is None else buckets("prepare", len(points))
-    padded_points = pc.pad(points, size)[0]
-    padded_neighbours = pc.pad(neighbours, size)[0]
-    covs = _covariances(jnp.asarray(padded_points), jnp.asarray(padded_neighbours), regularizer)
+    covs, features = cloud_attributes(
+        jnp.asarray(pc.pad(points, size)[0]),
+        jnp.asarray(pc.pad(neighbours, size)[0]),
+        jnp.asarray(pc.pad(np.asarray(pca_features), size)[0]),
+        learned,
+        regularizer,
+    )
     covs = np.asarray(covs, dtype=np.float64)[: len(points)]
-    return PreparedCloud(points, covs, tree)
+    features = None if learned.conversion is None else np.asarray(features)[: len(points)]
+    return PreparedCloud(points, covs, tree, features)
 
 
 def _whiten(C: Array, r: Array) -> Array:
@@ -179,12 +219,11 @@ def _pairs(T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Arr
     R = T[:3, :3]
     a = source.points @ R.T + T[:3, 3]
     b_all = target.points[candidates]  # (N, K, 3)
-    d2 = jnp.sum((b_all - a[:, None, :]) ** 2, axis=-1)
-    d2 = jnp.where(valid, d2, jnp.inf)
-    j = jnp.argmin(d2, axis=1)
-    d2_best = jnp.take_along_axis(d2, j[:, None], axis=1)[:, 0]
+    j = association.hard(a, b_all, source.features, target.features[candidates], valid)
     partner = jnp.take_along_axis(candidates, j[:, None], axis=1)[:, 0]
-    inlier = source.mask & (d2_best < max_d2)
+    d2_best = jnp.sum((target.points[partner] - a) ** 2, axis=-1)
+    chosen_valid = jnp.take_along_axis(valid, j[:, None], axis=1)[:, 0]
+    inlier = source.mask & chosen_valid & (d2_best < max_d2)
     # The weights hold the rotation fixed within a step, as GICP does (H of
     # gauss_newton_system); it also keeps the Cholesky factor out of the Jacobian, which makes
     # each LM step several times cheaper.

@@ -130,6 +130,31 @@ def init_model(
     )
 
 
+# Which learned parts each method uses: (data association, covariance estimation).
+METHODS = {"gicp": (False, False), "gicp_da": (True, False), "gicp_ce": (False, True),
+           "gloam": (True, True)}  # fmt: skip
+
+
+class Learned(NamedTuple):
+    """The learned parts a registration uses, as a pytree; None keeps plain GICP's step."""
+
+    conversion: FeatureConversionMLP | None = None  # data association in [xyz, f] space
+    eigenvalue: EigenvalueEstimationMLP | None = None  # covariances by Algorithm 1
+    eps: float | Array = DEFAULT_EPS
+
+
+def learned_parts(model: GLOAMModel | None, method: str) -> Learned:
+    """The parts of ``model`` that ``method`` (a key of :data:`METHODS`) uses."""
+    if method not in METHODS:
+        raise InputError(None, f"unknown method '{method}' (choose from {', '.join(METHODS)})")
+    da, ce = METHODS[method]
+    if (da or ce) and model is None:
+        raise InputError(None, f"method '{method}' needs a model file (--weights)")
+    if model is None:
+        return Learned()
+    return Learned(model.conversion if da else None, model.eigenvalue if ce else None, model.eps)
+
+
 def _arrays(model: GLOAMModel) -> dict[str, np.ndarray]:
     out = {f"pca_{k}": np.asarray(v, np.float64) for k, v in model.pca._asdict().items()}
     for prefix, mlp in (("conversion", model.conversion), ("eigenvalue", model.eigenvalue)):

@@ -30,6 +30,7 @@ from gloam_jax.gicp import (
     increment,
     retract_host,
 )
+from gloam_jax.models import METHODS, GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
 
 
@@ -42,7 +43,9 @@ class OdometryConfig:
     max_range: float = 100.0
     downsampling_resolution: float = 0.5  # m, voxel size of each scan
     num_neighbors: int = 10  # for the covariances (small_gicp's default)
-    regularizer: str = "plane"
+    regularizer: str = "plane"  # plain GICP's covariances (methods without learned ones)
+    method: Literal["gicp", "gicp_da", "gicp_ce", "gloam"] = "gicp"  # see models.METHODS
+    model: str | None = None  # model file (learned parts) for the methods that need one
     deskew: bool = True
     sweep_duration: float = 0.1  # s, used when scans carry no per-point times
     keyframe_distance: float = 2.0  # m between keyframes
@@ -105,17 +108,21 @@ class LocalMap:
 
     def __init__(self, max_keyframes: int) -> None:
         self.max_keyframes = max_keyframes
-        self.keyframes: list[tuple[np.ndarray, np.ndarray]] = []  # (points, covs) in world
+        # (points, covariances, association features or None), in the world frame
+        self.keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
         self.cloud: PreparedCloud | None = None
         self.last_pose: np.ndarray | None = None
 
     def add(self, cloud: PreparedCloud, T_world_lidar: np.ndarray) -> None:
         R, t = T_world_lidar[:3, :3], T_world_lidar[:3, 3]
-        self.keyframes.append((cloud.points @ R.T + t, R @ cloud.covs @ R.T))
+        self.keyframes.append((cloud.points @ R.T + t, R @ cloud.covs @ R.T, cloud.features))
         self.keyframes = self.keyframes[-self.max_keyframes :]
         points = np.concatenate([k[0] for k in self.keyframes])
         covs = np.concatenate([k[1] for k in self.keyframes])
-        self.cloud = PreparedCloud(points, covs, KdTree(points, "local map"))
+        features = (
+            None if cloud.features is None else np.concatenate([k[2] for k in self.keyframes])
+        )
+        self.cloud = PreparedCloud(points, covs, KdTree(points, "local map"), features)
         self.last_pose = T_world_lidar
 
     def capacity(self) -> int:
@@ -162,8 +169,17 @@ def remap(T_prior: np.ndarray, T_est: np.ndarray, weak: np.ndarray, lever_arm: f
 class Odometry:
     """Frame-by-frame pose estimation; call :meth:`register_frame` with each scan in order."""
 
-    def __init__(self, config: OdometryConfig = OdometryConfig()) -> None:
+    def __init__(
+        self, config: OdometryConfig = OdometryConfig(), model: GLOAMModel | None = None
+    ) -> None:
+        """``model`` (default: loaded from ``config.model``) holds the learned parts that
+        ``config.method`` uses; those methods then need per-point features in register_frame."""
         self.config = config
+        if model is None and config.model is not None:
+            model = load_model(config.model)
+        self.model = model
+        self.learned = learned_parts(model, config.method)
+        self.needs_features = any(METHODS[config.method])
         self.poses: list[np.ndarray] = []
         self.status: list[FrameStatus] = []
         self.velocity = np.zeros(6)  # se(3) motion per frame interval
@@ -183,6 +199,7 @@ class Odometry:
         frame_dt: float,
         status,
         source: str | None,
+        features: np.ndarray | None,
     ) -> PreparedCloud:
         cfg = self.config
         keep, status.num_dropped = pc.range_mask(scan, cfg.min_range, cfg.max_range, source)
@@ -190,14 +207,24 @@ class Odometry:
         if len(points) == 0:
             raise InputError(source, f"no points between {cfg.min_range} and {cfg.max_range} m")
         t = times[keep] if times is not None else azimuth_times(points, cfg.sweep_duration)
+        columns = [points, t]
+        if self.needs_features:
+            if len(features) != len(scan):
+                raise InputError(
+                    source, f"features have {len(features)} rows but the scan has {len(scan)}"
+                )
+            columns.append(features[keep])
         # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
-        # few voxel centres with their mean time.
-        reduced = pc.voxel_downsample(np.c_[points, t], cfg.downsampling_resolution)
+        # few voxel centres with their mean time; features are averaged per voxel alike.
+        reduced = pc.voxel_downsample(np.column_stack(columns), cfg.downsampling_resolution)
         points = reduced[:, :3]
         if cfg.deskew and self.poses:
             size = self.buckets("deskew", len(points))
             points = deskew(points, reduced[:, 3], self.velocity, frame_dt, size)
-        return build_cloud(points, cfg.num_neighbors, cfg.regularizer, source, self.buckets)
+        pca = self.model.pca_features(reduced[:, 4:]) if self.needs_features else None
+        return build_cloud(
+            points, cfg.num_neighbors, cfg.regularizer, source, self.buckets, pca, self.learned
+        )
 
     def register_frame(
         self,
@@ -205,14 +232,18 @@ class Odometry:
         times: np.ndarray | None = None,
         frame_dt: float = 0.1,
         source: str | None = None,
+        features: np.ndarray | None = None,
     ) -> np.ndarray:
         """Estimate the pose of ``scan`` (N, 3+), with optional per-point times (N,) in seconds
-        from its reference time; ``frame_dt`` is the time since the previous frame.
+        from its reference time; ``frame_dt`` is the time since the previous frame;
+        ``features`` (N, D): the backbone's, for the learned methods.
         Returns ``T_world_lidar`` (4, 4). Bad scans fall back on the motion prior."""
         cfg, status = self.config, FrameStatus()
+        if self.needs_features and features is None:
+            raise InputError(source, f"method '{cfg.method}' needs per-point features")
         T_pred = self._predict()
         try:
-            cloud = self._preprocess(scan, times, frame_dt, status, source)
+            cloud = self._preprocess(scan, times, frame_dt, status, source, features)
         except InputError as err:
             status.error = str(err)
             return self._accept(T_pred, None, status)

@@ -23,6 +23,7 @@ import numpy as np
 from gloam_jax import io, metrics
 from gloam_jax.config import dump_config
 from gloam_jax.errors import InputError
+from gloam_jax.features import Backbone, get_backbone
 from gloam_jax.odometry import Odometry, OdometryConfig
 
 
@@ -34,25 +35,52 @@ def run_sequence(
     *,
     frames: int | None = None,
     progress: Callable[[int, float], None] | None = None,
+    features_dir: str | Path | None = None,
 ) -> dict:
-    """Run odometry over a sequence and write the run folder; returns the metrics dict."""
+    """Run odometry over a sequence and write the run folder; returns the metrics dict.
+
+    Learned methods get per-point features from the model's backbone, or from one file per
+    scan in ``features_dir`` (the ``precomputed`` backbone). The time per frame counts
+    registration only; feature extraction is timed separately (``median_ms_features``).
+    """
     seq = io.KittiSequence(root, sequence)
     n = len(seq) if frames is None else min(frames, len(seq))
     if n < 2:
         raise InputError(seq.sequence_dir, f"need at least 2 scans, have {n}")
     odometry = Odometry(config)
+    backbone = _backbone(odometry, features_dir)
     times = seq.times
-    frame_ms = []
+    frame_ms, feature_ms = [], []
     for i in range(n):
         scan = seq.scan(i)
         point_times = seq.point_times(i)
         frame_dt = float(times[i] - times[i - 1]) if i > 0 else config.sweep_duration
+        path = seq.scan_path(i)
+        features = None
+        if backbone is not None:
+            t0 = time.perf_counter()
+            features = backbone(scan, path=path, frame=i)
+            feature_ms.append(1e3 * (time.perf_counter() - t0))
         t0 = time.perf_counter()
-        odometry.register_frame(scan, point_times, frame_dt, source=str(seq.scan_path(i)))
+        odometry.register_frame(scan, point_times, frame_dt, source=str(path), features=features)
         frame_ms.append(1e3 * (time.perf_counter() - t0))
         if progress is not None:
             progress(i, frame_ms[-1])
-    return write_run(seq, odometry, config, out_dir, n, frame_ms)
+    result = write_run(seq, odometry, config, out_dir, n, frame_ms)
+    if feature_ms:
+        result["median_ms_features"] = float(np.median(feature_ms))
+        io.write_atomic(Path(out_dir) / "metrics.json", json.dumps(result, indent=2))
+    return result
+
+
+def _backbone(odometry: Odometry, features_dir: str | Path | None) -> Backbone | None:
+    """The feature source of a learned method: the model's backbone or a folder of files."""
+    if not odometry.needs_features:
+        return None
+    if features_dir is not None:
+        return get_backbone("precomputed", folder=features_dir)
+    model = odometry.model
+    return get_backbone(model.backbone, **model.backbone_options)
 
 
 def write_run(seq: io.KittiSequence, odometry: Odometry, config: OdometryConfig,

@@ -148,13 +148,15 @@ def test_analytic_gauss_newton_matches_autodiff():
     target_points = rng.normal(size=(n, 3)).astype(np.float32)
     A = rng.normal(size=(n, 3, 3))
     target_covs = (A @ A.transpose(0, 2, 1) + 0.1 * np.eye(3)).astype(np.float32)
-    # Isotropic source covariances: R C R^T = C, so fixing the weights changes nothing.
+    # Anisotropic source covariances: both hold the weights' rotation fixed, as GICP does.
+    source_covs = np.tile(np.diag([0.05, 0.2, 0.4]), (n, 1, 1)).astype(np.float32)
+    no_features = jnp.zeros((n, 0), jnp.float32)
     source = Cloud(
-        jnp.asarray(target_points + 0.05),
-        jnp.asarray(np.tile(0.2 * np.eye(3), (n, 1, 1)).astype(np.float32)),
-        jnp.ones(n, bool),
+        jnp.asarray(target_points + 0.05), jnp.asarray(source_covs), jnp.ones(n, bool), no_features
     )
-    target = Cloud(jnp.asarray(target_points), jnp.asarray(target_covs), jnp.ones(n, bool))
+    target = Cloud(
+        jnp.asarray(target_points), jnp.asarray(target_covs), jnp.ones(n, bool), no_features
+    )
     cand = jnp.asarray(np.arange(n)[:, None].astype(np.int32))
     valid = jnp.ones((n, 1), bool)
     T = jnp.asarray(geo.se3_exp(np.array([0.01, -0.02, 0.03, 0.02, -0.01, 0.015])), jnp.float32)

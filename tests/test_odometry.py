@@ -20,15 +20,6 @@ from gloam_jax.odometry import (
     remap,
     weak_directions,
 )
-from gloam_jax.simulate import simulate
-
-
-@pytest.fixture(scope="module")
-def sim_sequence(tmp_path_factory):
-    """40 frames of a thinned HDL-64 along a procedural urban drive (about 35 m)."""
-    root = tmp_path_factory.mktemp("sim")
-    simulate(root, frames=40, num_beams=32, num_columns=1000, seed=7, style="urban")
-    return root
 
 
 def test_azimuth_times_match_the_simulated_timestamps(sim_sequence):

@@ -1,0 +1,13 @@
+"""Fixtures shared by several test modules."""
+
+import pytest
+
+from gloam_jax.simulate import simulate
+
+
+@pytest.fixture(scope="session")
+def sim_sequence(tmp_path_factory):
+    """40 frames of a thinned HDL-64 along a procedural urban drive (about 35 m)."""
+    root = tmp_path_factory.mktemp("sim")
+    simulate(root, frames=40, num_beams=32, num_columns=1000, seed=7, style="urban")
+    return root

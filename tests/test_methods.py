@@ -1,0 +1,139 @@
+"""The four methods (gicp, gicp_da, gicp_ce, gloam): learned parts inside registration and
+odometry, model files on the command line, and their errors."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from gloam_jax import io
+from gloam_jax.cli import app
+from gloam_jax.errors import InputError
+from gloam_jax.features import fit_pca, get_backbone
+from gloam_jax.gicp import GICPConfig, align_prepared, build_cloud
+from gloam_jax.models import init_model, learned_parts, save_model
+from gloam_jax.odometry import Odometry, OdometryConfig
+
+
+@pytest.fixture(scope="module")
+def model(sim_sequence):
+    seq = io.KittiSequence(sim_sequence, "00")
+    backbone = get_backbone("geometric")
+    pca = fit_pca([backbone(seq.scan(i)) for i in (0, 20)])
+    return init_model(jax.random.PRNGKey(0), pca, backbone_options=backbone.options())
+
+
+def _scene(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Floor, two walls and a pole, with made-up per-point features (N, 6)."""
+    rng = np.random.default_rng(seed)
+    k = 1500
+    floor = np.c_[rng.uniform(-10, 10, (k, 2)), np.zeros(k)]
+    wall_x = np.c_[np.full(k, 6.0), rng.uniform(-10, 10, k), rng.uniform(0, 4, k)]
+    wall_y = np.c_[rng.uniform(-10, 10, k), np.full(k, -5.0), rng.uniform(0, 4, k)]
+    a = rng.uniform(0, 2 * np.pi, 300)
+    pole = np.c_[2 + 0.1 * np.cos(a), 1 + 0.1 * np.sin(a), rng.uniform(0, 4, 300)]
+    points = np.concatenate([floor, wall_x, wall_y, pole]) + rng.normal(0, 0.003, (4800, 3))
+    return points, rng.normal(size=(len(points), 6))
+
+
+def _register(model, method: str, T_true: np.ndarray) -> np.ndarray:
+    target_points, target_features = _scene(0)
+    source_points = (target_points - T_true[:3, 3]) @ T_true[:3, :3]
+    learned = learned_parts(model, method)
+    kw = dict(num_neighbors=10, pca_features=target_features, learned=learned)
+    target = build_cloud(target_points, **kw)
+    source = build_cloud(source_points, **kw)
+    config = GICPConfig(num_candidates=5)
+    return align_prepared(target, source, None, config).T_target_source
+
+
+T_TRUE = np.array(
+    [[np.cos(0.03), -np.sin(0.03), 0, 0.25], [np.sin(0.03), np.cos(0.03), 0, -0.15],
+     [0, 0, 1, 0.05], [0, 0, 0, 1]]
+)  # fmt: skip
+
+
+def test_association_on_zero_features_is_plain_gicp(model):
+    zero = model.conversion._replace(w2=jnp.zeros_like(model.conversion.w2), b2=jnp.zeros(3))
+    silent = dataclasses.replace(model, conversion=zero)
+    plain = _register(None, "gicp", T_TRUE)
+    np.testing.assert_array_equal(_register(silent, "gicp_da", T_TRUE), plain)
+    np.testing.assert_allclose(plain, T_TRUE, atol=5e-3)
+
+
+def test_learned_plane_eigenvalues_give_plain_gicp(model):
+    # A constant (1, eps, 1) output becomes (eps, 1, 1) / |.|: GICP's plane covariances up to
+    # one common scale, which leaves the optimum where it was.
+    eps = model.eps
+    flat = model.eigenvalue._replace(
+        w2=jnp.zeros_like(model.eigenvalue.w2), b2=jnp.array([1.0, eps, 1.0])
+    )
+    planes = dataclasses.replace(model, eigenvalue=flat)
+    np.testing.assert_allclose(
+        _register(planes, "gicp_ce", T_TRUE), _register(None, "gicp", T_TRUE), atol=2e-4
+    )
+
+
+@pytest.mark.parametrize("method", ["gicp_da", "gicp_ce", "gloam"])
+def test_learned_methods_track_a_simulated_drive(sim_sequence, model, method):
+    seq = io.KittiSequence(sim_sequence, "00")
+    config = OdometryConfig(method=method, gicp=GICPConfig(num_candidates=5))
+    odometry = Odometry(config, model)
+    backbone = get_backbone("geometric")
+    for i in range(8):
+        scan = seq.scan(i)
+        odometry.register_frame(scan, seq.point_times(i), 0.1, features=backbone(scan))
+    assert not any(s.error for s in odometry.status)
+    # Untrained MLPs: the estimate must stay sane, not better than GICP.
+    gt = seq.gt_poses_lidar
+    drift = np.linalg.inv(gt[0]) @ gt[7] @ np.linalg.inv(odometry.poses[7])
+    assert np.linalg.norm(drift[:3, 3]) < 0.5
+
+
+def test_learned_methods_need_a_model_and_features(sim_sequence, model):
+    with pytest.raises(InputError, match="method 'gloam' needs a model file"):
+        Odometry(OdometryConfig(method="gloam"))
+    odometry = Odometry(OdometryConfig(method="gloam"), model)
+    scan = io.KittiSequence(sim_sequence, "00").scan(0)
+    with pytest.raises(InputError, match="a.bin: method 'gloam' needs per-point features"):
+        odometry.register_frame(scan, source="a.bin")
+    odometry.register_frame(scan, source="b.bin", features=np.zeros((10, 20)))
+    assert "b.bin: features have 10 rows but the scan has" in odometry.status[-1].error
+
+
+def test_init_model_then_run_gloam_from_the_command_line(sim_sequence, tmp_path):
+    runner = CliRunner()
+    weights = tmp_path / "model.npz"
+    made = runner.invoke(
+        app,
+        ["init-model", str(sim_sequence), "--sequences", "00", "--every", "20",
+         "--out", str(weights)],
+    )  # fmt: skip
+    assert made.exit_code == 0, made.output
+    assert "of the variance" in made.output and weights.exists()
+    result = runner.invoke(
+        app,
+        ["run", str(sim_sequence), "--sequence", "00", "--frames", "5", "--config",
+         "configs/gloam.yaml", "--weights", str(weights), "--out", str(tmp_path / "runs")],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert len(io.read_kitti_poses(tmp_path / "runs" / "latest" / "00_poses_kitti.txt")) == 5
+    missing = runner.invoke(
+        app, ["run", str(sim_sequence), "--config", "configs/gloam.yaml", "--frames", "3"]
+    )
+    assert missing.exit_code == 2 and "needs a model file" in missing.output
+
+
+def test_saved_model_runs_identically(tmp_path, sim_sequence, model):
+    save_model(tmp_path / "m.npz", model)
+    config = OdometryConfig(method="gloam", model=str(tmp_path / "m.npz"))
+    seq = io.KittiSequence(sim_sequence, "00")
+    features = get_backbone("geometric")(seq.scan(0))
+    a, b = Odometry(config), Odometry(dataclasses.replace(config, model=None), model)
+    for odo in (a, b):
+        odo.register_frame(seq.scan(0), features=features)
+        odo.register_frame(seq.scan(1), features=get_backbone("geometric")(seq.scan(1)))
+    np.testing.assert_array_equal(a.poses[-1], b.poses[-1])
