@@ -313,12 +313,12 @@ def run(
 
 @app.command(
     name="init-model",
-    epilog="Example:\n\n  gloam init-model data/sim --sequences 05 07 --out model.npz",
+    epilog="Example:\n\n  gloam init-model data/sim 05 07 --out model.npz",
 )
 @_user_errors
 def init_model(
     data: Annotated[Path, typer.Argument(help="KITTI-layout root with training sequences.")],
-    sequences: Annotated[list[str], typer.Option(help="Training sequence ids.")],
+    sequences: Annotated[list[str], typer.Argument(help="Training sequence ids.")],
     out: Annotated[Path, typer.Option(help="Model file to write (.npz).")] = Path("model.npz"),
     every: Annotated[int, typer.Option(min=1, help="Use every N-th scan for the PCA.")] = 25,
     backbone: Annotated[str, typer.Option(help="Feature backbone: geometric.")] = "geometric",

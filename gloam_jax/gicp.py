@@ -2,9 +2,9 @@
 
 Registration estimates ``T_target_source``. Each outer round finds, on the host, the K
 nearest target points of every transformed source point (a fixed ``(N, K)`` candidate set);
-a jitted solve then runs a few Levenberg-Marquardt steps on the increment ``xi = (rho, phi)``
-of ``T = retract(xi, T_round)``, choosing each source point's partner among its candidates at
-the current estimate.
+a jitted solve chooses each source point's partner among its candidates (by distance, in
+[xyz, f] space when the cloud has association features) and runs a few Levenberg-Marquardt
+steps on the increment ``xi = (rho, phi)`` of ``T = retract(xi, T_round)``.
 
 The increment rotates the source about its own origin (the sensor) by ``exp(phi)`` and shifts
 it by ``rho``, both in target axes. Unlike a left se(3) increment, which rotates about the
@@ -214,16 +214,23 @@ class _Pairs(NamedTuple):
     C: Array  # (N, 3, 3) combined covariances C_b + R C_a R^T
 
 
+def _choose(T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Array):
+    """Each source point's partner (N,) among its candidates at T, and whether it has one."""
+    a = source.points @ T[:3, :3].T + T[:3, 3]
+    j = association.hard(
+        a, target.points[candidates], source.features, target.features[candidates], valid
+    )
+    partner = jnp.take_along_axis(candidates, j[:, None], axis=1)[:, 0]
+    return partner, jnp.take_along_axis(valid, j[:, None], axis=1)[:, 0]
+
+
 def _pairs(T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Array, max_d2):
     """Each source point's partner among its candidates at T, and the whitened residuals."""
     R = T[:3, :3]
     a = source.points @ R.T + T[:3, 3]
-    b_all = target.points[candidates]  # (N, K, 3)
-    j = association.hard(a, b_all, source.features, target.features[candidates], valid)
-    partner = jnp.take_along_axis(candidates, j[:, None], axis=1)[:, 0]
+    partner, has_partner = _choose(T, source, target, candidates, valid)
     d2_best = jnp.sum((target.points[partner] - a) ** 2, axis=-1)
-    chosen_valid = jnp.take_along_axis(valid, j[:, None], axis=1)[:, 0]
-    inlier = source.mask & chosen_valid & (d2_best < max_d2)
+    inlier = source.mask & has_partner & (d2_best < max_d2)
     # The weights hold the rotation fixed within a step, as GICP does (H of
     # gauss_newton_system); it also keeps the Cholesky factor out of the Jacobian, which makes
     # each LM step several times cheaper.
@@ -318,10 +325,15 @@ def solve_round(
 
     Returns T (4, 4), the increment xi (6,) with ``T = retract(xi, T0)``, and
     :func:`gauss_newton_system`'s (H, b, error, inliers) at T, whose step decides convergence.
+    Partners are chosen among the candidates once, at T0, and held through the LM steps:
+    re-choosing by distance inside LM would change the Mahalanobis cost in jumps that its
+    trust region rejects.
     """
-    xi = _lm(T0, source, target, candidates, valid, max_d2, inner_steps, adjoint)
+    partner, has_partner = _choose(T0, source, target, candidates, valid)
+    pairs = (partner[:, None], has_partner[:, None], max_d2)
+    xi = _lm(T0, source, target, *pairs, inner_steps, adjoint)
     T = retract(xi, T0)
-    return T, xi, gauss_newton_system(T, source, target, candidates, valid, max_d2)
+    return T, xi, gauss_newton_system(T, source, target, *pairs)
 
 
 def align_prepared(

@@ -5,8 +5,10 @@
 DATA is a KITTI-layout root (real or from ``gloam simulate``). Every method gets the same raw
 scans, in order, with the same number of threads:
 
-* ``gloam-jax``: this project's frame-to-model GICP (``--config``, default configs/gicp.yaml),
-  deskewed with the scans' per-point times (azimuth-derived where absent);
+* ``gicp``, ``gicp_da``, ``gicp_ce``, ``gloam``: this project's frame-to-model odometry with
+  ``configs/<method>.yaml``, deskewed with the scans' per-point times (azimuth-derived where
+  absent); the learned methods take ``--weights`` and the model's backbone features, whose
+  extraction is timed apart from registration (``median_ms_features``);
 * ``small_gicp``: its documented scan-to-model odometry (VGICP on a GaussianVoxelMap of 1 m
   voxels with an LRU horizon, 0.25 m downsampling, constant-velocity guess), no deskew;
 * ``kiss-icp``: KISS-ICP with its default configuration, deskew on (times in [0, 1]).
@@ -39,21 +41,41 @@ class _CompileCounter(logging.Handler):
             self.count += 1
 
 
-def run_gloam(seq: io.KittiSequence, n: int, config_path: Path | None, counter: _CompileCounter):
+def run_ours(seq: io.KittiSequence, n: int, config_path: Path, weights: Path | None, counter):
+    import dataclasses
+
     from gloam_jax.config import load_config
+    from gloam_jax.features import get_backbone
     from gloam_jax.odometry import Odometry
 
-    odometry = Odometry(load_config(config_path))
-    times, ms, late_compiles = seq.times, [], 0
+    config = load_config(config_path)
+    if weights is not None:
+        config = dataclasses.replace(config, model=str(weights))
+    odometry = Odometry(config)
+    backbone = None
+    if odometry.needs_features:
+        backbone = get_backbone(odometry.model.backbone, **odometry.model.backbone_options)
+    times, ms, feature_ms, late_compiles = seq.times, [], [], 0
     for i in range(n):
         scan, point_times = seq.scan(i), seq.point_times(i)
         dt = float(times[i] - times[i - 1]) if i else 0.1
+        features = None
+        if backbone is not None:
+            t0 = time.perf_counter()
+            features = backbone(scan, path=seq.scan_path(i), frame=i)
+            feature_ms.append(1e3 * (time.perf_counter() - t0))
         if i == 20:
             late_compiles = counter.count
         t0 = time.perf_counter()
-        odometry.register_frame(scan, point_times, dt)
+        odometry.register_frame(scan, point_times, dt, features=features)
         ms.append(1e3 * (time.perf_counter() - t0))
-    extra = {"compiles_after_frame_20": counter.count - late_compiles if n > 20 else None}
+    extra = {
+        "compiles_after_frame_20": counter.count - late_compiles if n > 20 else None,
+        "rounds_per_frame": float(np.mean([s.iterations for s in odometry.status[1:]])),
+        "degenerate_frames": int(sum(s.degenerate for s in odometry.status)),
+    }
+    if feature_ms:
+        extra["median_ms_features"] = float(np.median(feature_ms))
     return np.stack(odometry.poses), ms, extra
 
 
@@ -110,8 +132,9 @@ def main() -> None:
     parser.add_argument("--sequences", nargs="+", required=True)
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--config", type=Path, default=Path("configs/gicp.yaml"))
-    parser.add_argument("--methods", default="gloam-jax,small_gicp,kiss-icp")
+    parser.add_argument("--configs", type=Path, default=Path("configs"), help="<method>.yaml")
+    parser.add_argument("--weights", type=Path, default=None, help="model for learned methods")
+    parser.add_argument("--methods", default="gicp,small_gicp,kiss-icp")
     parser.add_argument("--out", type=Path, default=Path("bench_odometry.json"))
     args = parser.parse_args()
 
@@ -132,12 +155,13 @@ def main() -> None:
             key = f"{name}/{method}"
             if key in results:  # resume: keep what an earlier run measured
                 continue
-            if method == "gloam-jax":
-                poses, ms, extra = run_gloam(seq, n, args.config, counter)
-            elif method == "small_gicp":
+            if method == "small_gicp":
                 poses, ms, extra = run_small_gicp(seq, n, args.threads)
-            else:
+            elif method == "kiss-icp":
                 poses, ms, extra = run_kiss(seq, n, args.threads)
+            else:
+                config = args.configs / f"{method}.yaml"
+                poses, ms, extra = run_ours(seq, n, config, args.weights, counter)
             est = io.lidar_to_cam_poses(np.linalg.inv(poses[0]) @ poses, seq.Tr_cam_velo)
             rte = metrics.kitti_rte(gt, est)
             results[key] = {

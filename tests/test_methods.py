@@ -109,7 +109,7 @@ def test_init_model_then_run_gloam_from_the_command_line(sim_sequence, tmp_path)
     weights = tmp_path / "model.npz"
     made = runner.invoke(
         app,
-        ["init-model", str(sim_sequence), "--sequences", "00", "--every", "20",
+        ["init-model", str(sim_sequence), "00", "--every", "20",
          "--out", str(weights)],
     )  # fmt: skip
     assert made.exit_code == 0, made.output

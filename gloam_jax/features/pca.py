@@ -35,9 +35,11 @@ class FeaturePCA(NamedTuple):
 
     def transform(self, features: np.ndarray | Array) -> np.ndarray | Array:
         """Projected features (..., C) of features (..., D), NumPy or JAX, in their dtype."""
+        # One affine map, ((x - mean) / scale) C^T = x W + bias: no (N, D) temporaries.
         dtype = features.dtype
-        mean, scale = self.mean.astype(dtype), self.scale.astype(dtype)
-        return ((features - mean) / scale) @ self.components.T.astype(dtype)
+        W = (self.components / self.scale).T
+        bias = -(self.mean / self.scale) @ self.components.T
+        return features @ W.astype(dtype) + bias.astype(dtype)
 
 
 def fit_pca(
