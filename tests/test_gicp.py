@@ -71,6 +71,29 @@ def test_covariances_and_regularisers():
     np.testing.assert_allclose(clamped[:, 2], np.linalg.eigvalsh(np.asarray(C))[:, 2], rtol=1e-4)
 
 
+def test_closed_form_eigendecomposition_matches_numpy():
+    rng = np.random.default_rng(5)
+    R = np.linalg.qr(rng.normal(size=(300, 3, 3)))[0]
+    spreads = np.array([[1.0, 1.0, 1.0], [1.0, 1.0, 1e-3], [1.0, 1e-3, 1e-3], [1.0, 0.3, 0.05]])
+    values = np.repeat(spreads, 75, axis=0) * rng.uniform(0.01, 4.0, (300, 1))
+    C = np.einsum("nij,nj,nkj->nik", R, values, R)
+    special = np.stack(
+        [np.zeros((3, 3)), np.eye(3), np.diag([2.0, 2.0, 0.0]), np.diag([0, 0, 5.0])]
+    )
+    C = np.concatenate([C, special]).astype(np.float32)
+    got_values, vectors = (np.asarray(x, np.float64) for x in jax.jit(cov.eigendecompose)(C))
+    scale = np.abs(C).max(axis=(1, 2)) + 1e-30
+    expected = np.linalg.eigvalsh(C.astype(np.float64))
+    # float32: a repeated eigenvalue puts the trigonometric formula's arccos at +-1, where it
+    # loses half the digits (~sqrt(eps) = 3e-4 relative); the eigenvectors stay orthonormal.
+    assert np.all(np.abs(got_values - expected) <= 5e-4 * scale[:, None])
+    np.testing.assert_allclose(
+        np.einsum("nji,njk->nik", vectors, vectors), np.broadcast_to(np.eye(3), C.shape), atol=1e-5
+    )
+    residual = np.einsum("nij,njk->nik", C, vectors) - vectors * got_values[:, None, :]
+    assert np.all(np.abs(residual).max(axis=(1, 2)) <= 5e-4 * scale)
+
+
 @pytest.mark.parametrize(
     "xi",
     [
