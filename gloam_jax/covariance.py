@@ -133,9 +133,18 @@ def learned(covariances: Array, eigenvalues: Array, eps: float | Array) -> Array
     Differentiable with respect to ``eigenvalues`` (and ``eps``), not the covariances.
     """
     _, vectors = eigendecompose(covariances)
-    values = jnp.maximum(jnp.sort(eigenvalues, axis=-1), eps)
+    values = jnp.maximum(_sort3(eigenvalues), eps)
     values = values / jnp.linalg.norm(values, axis=-1, keepdims=True)
     return recompose(vectors, values.astype(vectors.dtype))
+
+
+def _sort3(x: Array) -> Array:
+    """Ascending sort of the last axis of length 3, elementwise (XLA's sort op is a slow
+    comparator loop on CPU): (..., 3) -> (..., 3)."""
+    low = jnp.min(x, axis=-1)
+    high = jnp.max(x, axis=-1)
+    mid = jnp.clip(jnp.sum(x, axis=-1) - low - high, low, high)  # rounding stays in order
+    return jnp.stack([low, mid, high], axis=-1)
 
 
 REGULARIZERS = {"plane": plane, "raw_eps": raw_eps}

@@ -216,7 +216,7 @@ class Odometry:
                     source, f"features have {len(features)} rows but the scan has {len(scan)}"
                 )
             # The PCA is affine, so it commutes with the voxel mean: carry 6 columns, not D.
-            columns.append(self.model.pca_features(features[keep]))
+            columns.append(self.model.pca_features(features)[keep])
         # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
         # few voxel centres with their mean time; features are averaged per voxel alike.
         reduced = pc.voxel_downsample(np.column_stack(columns), cfg.downsampling_resolution)
