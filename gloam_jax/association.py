@@ -28,6 +28,22 @@ def hard(a: Array, b: Array, fa: Array, fb: Array, valid: Array) -> Array:
     return jnp.argmin(jnp.where(valid, costs(a, b, fa, fb), jnp.inf), axis=1)
 
 
+def log_soft(
+    a: Array, b: Array, fa: Array, fb: Array, valid: Array, temperature: float | Array
+) -> Array:
+    """Log-weights (N, K) of :func:`soft`: -inf for invalid candidates and for rows without a
+    valid one. Finite gradients everywhere (``exp(0.5 * log_soft)`` is a NaN-free square root
+    of the weights, which a weighted least-squares residual needs)."""
+    logits = jnp.where(valid, -costs(a, b, fa, fb) / temperature, -jnp.inf)
+    top = jnp.max(logits, axis=1, keepdims=True)
+    # Shift by the row maximum for range; a row with no valid candidate has -inf there.
+    top = jax.lax.stop_gradient(jnp.where(jnp.isfinite(top), top, 0.0))
+    shifted = jnp.where(valid, logits - top, 0.0)
+    total = jnp.sum(jnp.where(valid, jnp.exp(shifted), 0.0), axis=1, keepdims=True)
+    log_total = jnp.log(jnp.where(total > 0, total, 1.0))
+    return jnp.where(valid, shifted - log_total, -jnp.inf)
+
+
 def soft(
     a: Array, b: Array, fa: Array, fb: Array, valid: Array, temperature: float | Array
 ) -> Array:
@@ -36,10 +52,4 @@ def soft(
     ``temperature`` is in the cost's units (m^2 plus feature units). Invalid candidates get
     0; rows without a valid candidate are all 0. Finite, with finite gradients, everywhere.
     """
-    logits = jnp.where(valid, -costs(a, b, fa, fb) / temperature, -jnp.inf)
-    top = jnp.max(logits, axis=1, keepdims=True)
-    # Shift by the row maximum for range; a row with no valid candidate has -inf there.
-    top = jax.lax.stop_gradient(jnp.where(jnp.isfinite(top), top, 0.0))
-    w = jnp.where(valid, jnp.exp(logits - top), 0.0)
-    total = jnp.sum(w, axis=1, keepdims=True)
-    return w / jnp.where(total > 0, total, 1.0)
+    return jnp.exp(log_soft(a, b, fa, fb, valid, temperature))

@@ -326,42 +326,118 @@ def init_model(
         Path | None, typer.Option(help="Fit on per-scan feature files here instead.")
     ] = None,
     seed: Annotated[int, typer.Option(help="MLP initialisation seed.")] = 0,
+    init: Annotated[
+        str, typer.Option(help="random, or gicp (start near plain GICP, for training).")
+    ] = "random",
 ) -> None:
     """Fit the frozen PCA on training scans and write a model file with untrained MLPs."""
-    import jax
-
-    from gloam_jax.features import fit_pca, get_backbone
-    from gloam_jax.io import KittiSequence
-    from gloam_jax.models import init_model as make_model
+    from gloam_jax.features import get_backbone
     from gloam_jax.models import save_model
+    from gloam_jax.training.problem import fit_initial_model
 
     extractor = (
         get_backbone("precomputed", folder=features)
         if features is not None
         else get_backbone(backbone)
     )
-    rows = []
     with _progress() as bar:
-        for name in sequences:
-            seq = KittiSequence(data, name)
-            frames = range(0, len(seq), every)
-            task = bar.add_task(f"features {name}", total=len(frames), rate="")
-            for i in frames:
-                rows.append(extractor(seq.scan(i), path=seq.scan_path(i), frame=i))
-                bar.advance(task)
-    pca = fit_pca(rows, seed=seed)
-    model = make_model(
-        jax.random.PRNGKey(seed),
-        pca,
-        backbone=extractor.name,
-        # A folder of files is the user's, not the model's: runs name theirs with --features.
-        backbone_options={} if features is not None else extractor.options(),
-    )
+        tasks: dict[str, int] = {}
+
+        def step(what: str, done: int, total: int) -> None:
+            if what not in tasks:
+                tasks[what] = bar.add_task(what, total=total, rate="")
+            bar.update(tasks[what], completed=done)
+
+        model = fit_initial_model(
+            data,
+            sequences,
+            extractor,
+            every=every,
+            seed=seed,
+            init=init,
+            # A folder of files is the user's, not the model's: runs name theirs with --features.
+            keep_backbone_options=features is None,
+            progress=step,
+        )
     save_model(out, model)
     console.print(
-        f"PCA on {sum(len(r) for r in rows)} points from {len(rows)} scans keeps "
-        f"{100 * float(sum(pca.explained_variance_ratio)):.1f} % of the variance; "
-        f"model (untrained MLPs, seed {seed}): {out}"
+        f"PCA keeps {100 * float(sum(model.pca.explained_variance_ratio)):.1f} % of the "
+        f"variance; model (untrained MLPs, {init} init, seed {seed}): {out}"
+    )
+
+
+@app.command(
+    epilog=(
+        "Examples:\n\n"
+        "  gloam train --config configs/train_grad.yaml --out runs/grad\n\n"
+        "  gloam train --mode tpe --config configs/train_tpe.yaml --out runs/tpe --trials 300\n\n"
+        "Rerunning a command with the same --out resumes it."
+    )
+)
+@_user_errors
+def train(
+    config: Annotated[
+        Path | None, typer.Option(help="YAML training settings (configs/train_*.yaml).")
+    ] = None,
+    mode: Annotated[str | None, typer.Option(help="tpe or grad (overrides the config).")] = None,
+    data: Annotated[
+        Path | None, typer.Option(help="KITTI-layout root of the training sequences.")
+    ] = None,
+    out: Annotated[Path, typer.Option(help="Run folder (resumed when it exists).")] = Path(
+        "runs/train"
+    ),
+    trials: Annotated[int | None, typer.Option(min=1, help="TPE trials (overrides).")] = None,
+    steps: Annotated[int | None, typer.Option(min=1, help="Gradient steps (overrides).")] = None,
+    cache: Annotated[
+        Path | None, typer.Option(help="Folder for prepared training windows (shared by runs).")
+    ] = None,
+) -> None:
+    """Train the MLPs by TPE (the paper's black-box search) or by gradients through GICP."""
+    import dataclasses
+
+    from gloam_jax.config import load_config
+    from gloam_jax.training.config import TrainConfig
+    from gloam_jax.training.problem import setup
+
+    cfg = load_config(config, TrainConfig)
+    if mode is not None:
+        if mode not in ("tpe", "grad"):
+            raise InputError(None, f"--mode must be tpe or grad, not {mode!r}")
+        cfg = dataclasses.replace(cfg, mode=mode)
+    if data is not None:
+        cfg = dataclasses.replace(cfg, data=str(data))
+    if trials is not None:
+        cfg = dataclasses.replace(cfg, tpe=dataclasses.replace(cfg.tpe, n_trials=trials))
+    if steps is not None:
+        cfg = dataclasses.replace(cfg, grad=dataclasses.replace(cfg.grad, steps=steps))
+    with _progress() as bar:
+        tasks: dict[str, int] = {}
+
+        def step(what: str, done: int, total: int) -> None:
+            if what not in tasks:
+                tasks[what] = bar.add_task(what, total=total, rate="")
+            bar.update(tasks[what], completed=done)
+
+        problem = setup(cfg, out, cache_dir=cache, progress=step)
+        label = "TPE trials" if cfg.mode == "tpe" else "gradient steps"
+
+        def tick(done: int, total: int, best: float) -> None:
+            step(label, done, total)
+            bar.update(tasks[label], rate=f"best t_err {100 * best:.3f} %")
+
+        if cfg.mode == "tpe":
+            from gloam_jax.training.tpe import train_tpe
+
+            model = train_tpe(problem, tick)
+        else:
+            from gloam_jax.training.grad import train_grad
+
+            model = train_grad(problem, tick)
+    info = model.provenance
+    console.print(
+        f"{cfg.mode}: best training t_err {100 * info['train_t_err']:.3f} % "
+        f"({info['wall_s']:.0f} s of training); model: {out / 'model.npz'}, "
+        f"curve: {out / 'loss_curve.png'}"
     )
 
 

@@ -1,14 +1,17 @@
-"""Experiment configuration: the odometry dataclasses, read from and written to YAML.
+"""Experiment configuration: settings dataclasses, read from and written to YAML.
 
-A YAML file holds the fields of :class:`~gloam_jax.odometry.OdometryConfig`, with the GICP
-ones under ``gicp:``. Unknown keys and wrongly typed values are errors naming the file.
+An odometry YAML file holds the fields of :class:`~gloam_jax.odometry.OdometryConfig`, with the
+GICP ones under ``gicp:``; a training one those of
+:class:`~gloam_jax.training.config.TrainConfig`. Unknown keys and wrongly typed values are
+errors naming the file.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
-from typing import Any, get_args, get_type_hints
+from typing import Any, get_args, get_origin, get_type_hints
 
 import yaml
 
@@ -18,7 +21,9 @@ from gloam_jax.io import write_atomic
 from gloam_jax.odometry import OdometryConfig
 
 
-def _build(cls, values: dict[str, Any], source: str, prefix: str = ""):
+def build_dataclass(cls, values: dict[str, Any], source: str, prefix: str = ""):
+    """``cls(**values)``, nested dataclasses from nested mappings, with the values checked
+    against the field types; errors name ``source`` and the setting."""
     hints = get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(values) - names)
@@ -30,7 +35,12 @@ def _build(cls, values: dict[str, Any], source: str, prefix: str = ""):
         if dataclasses.is_dataclass(hint):
             if not isinstance(value, dict):
                 raise InputError(source, f"{prefix}{name} must be a mapping")
-            kwargs[name] = _build(hint, value, source, f"{prefix}{name}.")
+            kwargs[name] = build_dataclass(hint, value, source, f"{prefix}{name}.")
+            continue
+        if get_origin(hint) is tuple:
+            if not isinstance(value, list | tuple):
+                raise InputError(source, f"{prefix}{name} must be a list, not {value!r}")
+            kwargs[name] = tuple(value)
             continue
         allowed = get_args(hint)
         if allowed and all(isinstance(a, str) for a in allowed):  # a Literal of strings
@@ -48,10 +58,11 @@ def _build(cls, values: dict[str, Any], source: str, prefix: str = ""):
     return cls(**kwargs)
 
 
-def load_config(path: str | Path | None) -> OdometryConfig:
-    """Odometry settings from a YAML file (defaults for what it leaves out); None: defaults."""
+def load_config(path: str | Path | None, cls: type = OdometryConfig):
+    """Settings of ``cls`` (default: odometry) from a YAML file, defaults for what it leaves
+    out; None: all defaults."""
     if path is None:
-        return OdometryConfig()
+        return cls()
     path = Path(path)
     if not path.exists():
         raise InputError(path, "file not found")
@@ -61,16 +72,25 @@ def load_config(path: str | Path | None) -> OdometryConfig:
         raise InputError(path, f"not valid YAML ({err})".replace("\n", " ")) from None
     if not isinstance(values, dict):
         raise InputError(path, "expected a mapping of settings at the top level")
-    return _build(OdometryConfig, values, str(path))
+    return build_dataclass(cls, values, str(path))
 
 
-def config_dict(config: OdometryConfig) -> dict[str, Any]:
-    return dataclasses.asdict(config)
+def config_dict(config) -> dict[str, Any]:
+    """A settings dataclass as plain YAML-ready values (tuples as lists)."""
+    return json.loads(json.dumps(dataclasses.asdict(config)))
 
 
-def dump_config(config: OdometryConfig, path: str | Path) -> None:
-    header = "# gloam-jax odometry settings (fields of gloam_jax.odometry.OdometryConfig)\n"
+def dump_config(config, path: str | Path) -> None:
+    cls = type(config)
+    header = f"# gloam-jax settings (fields of {cls.__module__}.{cls.__qualname__})\n"
     write_atomic(path, header + yaml.safe_dump(config_dict(config), sort_keys=False))
 
 
-__all__ = ["GICPConfig", "OdometryConfig", "config_dict", "dump_config", "load_config"]
+__all__ = [
+    "GICPConfig",
+    "OdometryConfig",
+    "build_dataclass",
+    "config_dict",
+    "dump_config",
+    "load_config",
+]

@@ -106,36 +106,47 @@ def _complement(v: Array) -> tuple[Array, Array]:
 
 
 def recompose(vectors: Array, values: Array) -> Array:
-    """``V diag(values) V^T``: (N, 3, 3), (N, 3) -> (N, 3, 3)."""
-    return jnp.einsum("nij,nj,nkj->nik", vectors, values, vectors)
+    """``V diag(values) V^T``: (..., 3, 3), (..., 3) -> (..., 3, 3)."""
+    return jnp.einsum("...ij,...j,...kj->...ik", vectors, values, vectors)
+
+
+def plane_values(values: Array, eps: float = PLANE_EPS) -> Array:
+    """GICP's eigenvalues (eps, 1, 1) in place of measured ascending ones (..., 3)."""
+    return jnp.broadcast_to(jnp.array([eps, 1.0, 1.0], values.dtype), values.shape)
+
+
+def raw_eps_values(values: Array, eps: float = PLANE_EPS) -> Array:
+    """Measured ascending eigenvalues (..., 3), clamped below at eps: keeps lines and spheres."""
+    return jnp.maximum(values, eps)
+
+
+def learned_values(eigenvalues: Array, eps: float | Array) -> Array:
+    """Algorithm 1's eigenvalues from the Eigenvalue Estimation MLP's raw output (..., 3):
+    sorted ascending (the smallest goes along the normal), clamped below at ``eps`` > 0 (no
+    rank drop; before the scaling, so all-zero outputs stay finite), L2-normalised."""
+    values = jnp.maximum(_sort3(eigenvalues), eps)
+    return values / jnp.linalg.norm(values, axis=-1, keepdims=True)
 
 
 def plane(covariances: Array, eps: float = PLANE_EPS) -> Array:
     """GICP's regulariser: eigenvalues replaced by (eps, 1, 1)."""
-    _, vectors = eigendecompose(covariances)
-    values = jnp.broadcast_to(jnp.array([eps, 1.0, 1.0], vectors.dtype), vectors.shape[:-1])
-    return recompose(vectors, values)
+    values, vectors = eigendecompose(covariances)
+    return recompose(vectors, plane_values(values, eps))
 
 
 def raw_eps(covariances: Array, eps: float = PLANE_EPS) -> Array:
-    """Measured eigenvalues, clamped below at eps: keeps lines and spheres as they are."""
+    """Measured eigenvalues, clamped below at eps."""
     values, vectors = eigendecompose(covariances)
-    return recompose(vectors, jnp.maximum(values, eps))
+    return recompose(vectors, raw_eps_values(values, eps))
 
 
 def learned(covariances: Array, eigenvalues: Array, eps: float | Array) -> Array:
-    """Algorithm 1 of Generalized LOAM: k-NN eigenvectors, MLP eigenvalues.
-
-    ``eigenvalues`` (N, 3) is the Eigenvalue Estimation MLP's raw output. It is sorted
-    ascending (the smallest goes along the normal), clamped below at ``eps`` > 0 (no rank drop;
-    before the scaling, so all-zero outputs stay finite) and divided by its L2 norm, then
-    recomposed with the eigenvectors of ``covariances`` (N, 3, 3) -> (N, 3, 3).
+    """Algorithm 1 of Generalized LOAM: k-NN eigenvectors of ``covariances`` (N, 3, 3), MLP
+    eigenvalues (N, 3) through :func:`learned_values` -> (N, 3, 3).
     Differentiable with respect to ``eigenvalues`` (and ``eps``), not the covariances.
     """
     _, vectors = eigendecompose(covariances)
-    values = jnp.maximum(_sort3(eigenvalues), eps)
-    values = values / jnp.linalg.norm(values, axis=-1, keepdims=True)
-    return recompose(vectors, values.astype(vectors.dtype))
+    return recompose(vectors, learned_values(eigenvalues, eps).astype(vectors.dtype))
 
 
 def _sort3(x: Array) -> Array:
@@ -148,3 +159,8 @@ def _sort3(x: Array) -> Array:
 
 
 REGULARIZERS = {"plane": plane, "raw_eps": raw_eps}
+"""Regularisers of k-NN covariances (N, 3, 3) -> (N, 3, 3)."""
+
+EIGENVALUE_RULES = {"plane": plane_values, "raw_eps": raw_eps_values}
+"""The same regularisers on an eigendecomposition: ascending eigenvalues (N, 3) -> (N, 3),
+for callers that decompose once and recompose many times (batch training)."""

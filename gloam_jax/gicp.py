@@ -194,50 +194,64 @@ def build_cloud(
 
 
 def _whiten(C: Array, r: Array) -> Array:
-    """``L^-1 r`` for ``C = L L^T`` (3x3 Cholesky, written out so XLA fuses it): (N, 3)."""
-    l00 = jnp.sqrt(C[:, 0, 0])
-    l10 = C[:, 1, 0] / l00
-    l20 = C[:, 2, 0] / l00
-    l11 = jnp.sqrt(C[:, 1, 1] - l10 * l10)
-    l21 = (C[:, 2, 1] - l20 * l10) / l11
-    l22 = jnp.sqrt(C[:, 2, 2] - l20 * l20 - l21 * l21)
-    y0 = r[:, 0] / l00
-    y1 = (r[:, 1] - l10 * y0) / l11
-    y2 = (r[:, 2] - l20 * y0 - l21 * y1) / l22
+    """``L^-1 r`` for ``C = L L^T`` (3x3 Cholesky, written out so XLA fuses it): C (..., 3, 3),
+    r (..., 3) -> (..., 3)."""
+    l00 = jnp.sqrt(C[..., 0, 0])
+    l10 = C[..., 1, 0] / l00
+    l20 = C[..., 2, 0] / l00
+    l11 = jnp.sqrt(C[..., 1, 1] - l10 * l10)
+    l21 = (C[..., 2, 1] - l20 * l10) / l11
+    l22 = jnp.sqrt(C[..., 2, 2] - l20 * l20 - l21 * l21)
+    y0 = r[..., 0] / l00
+    y1 = (r[..., 1] - l10 * y0) / l11
+    y2 = (r[..., 2] - l20 * y0 - l21 * y1) / l22
     return jnp.stack([y0, y1, y2], axis=-1)
 
 
-class _Pairs(NamedTuple):
-    e: Array  # (N, 3) whitened residuals, zero for outliers
-    inlier: Array  # (N,)
-    moved: Array  # (N, 3) source points at T
-    C: Array  # (N, 3, 3) combined covariances C_b + R C_a R^T
+class Partners(NamedTuple):
+    """Each source point's partners: target rows (N, J) and the square roots of their weights
+    (N, J). Hard association: J = 1, weight 1 (0 where a point has no candidate); soft: the
+    J = K candidates with softmax weights."""
+
+    index: Array
+    sqrt_weight: Array
 
 
-def _choose(T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Array):
-    """Each source point's partner (N,) among its candidates at T, and whether it has one."""
+def choose_partners(
+    T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Array, temperature=None
+) -> Partners:
+    """Partners among the (N, K) candidates at T: the cheapest in [xyz, f] space
+    (``temperature`` None) or all of them, softmax-weighted (see association.soft)."""
     a = source.points @ T[:3, :3].T + T[:3, 3]
-    j = association.hard(
-        a, target.points[candidates], source.features, target.features[candidates], valid
-    )
-    partner = jnp.take_along_axis(candidates, j[:, None], axis=1)[:, 0]
-    return partner, jnp.take_along_axis(valid, j[:, None], axis=1)[:, 0]
+    b, fb = target.points[candidates], target.features[candidates]
+    if temperature is None:
+        j = association.hard(a, b, source.features, fb, valid)[:, None]
+        index = jnp.take_along_axis(candidates, j, axis=1)
+        return Partners(index, jnp.take_along_axis(valid, j, axis=1).astype(a.dtype))
+    log_w = association.log_soft(a, b, source.features, fb, valid, temperature)
+    return Partners(candidates, jnp.exp(0.5 * log_w))
 
 
-def _pairs(T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Array, max_d2):
-    """Each source point's partner among its candidates at T, and the whitened residuals."""
+class _Pairs(NamedTuple):
+    e: Array  # (N, J, 3) whitened, weighted residuals, zero for outliers
+    inlier: Array  # (N, J)
+    moved: Array  # (N, 3) source points at T
+    C: Array  # (N, J, 3, 3) combined covariances C_b + R C_a R^T
+
+
+def _pairs(T: Array, source: Cloud, target: Cloud, partners: Partners, max_d2) -> _Pairs:
+    """Whitened residuals of each source point and its partners at T."""
     R = T[:3, :3]
     a = source.points @ R.T + T[:3, 3]
-    partner, has_partner = _choose(T, source, target, candidates, valid)
-    d2_best = jnp.sum((target.points[partner] - a) ** 2, axis=-1)
-    inlier = source.mask & has_partner & (d2_best < max_d2)
+    r = target.points[partners.index] - a[:, None, :]
+    inlier = source.mask[:, None] & (partners.sqrt_weight > 0) & (jnp.sum(r * r, axis=-1) < max_d2)
     # The weights hold the rotation fixed within a step, as GICP does (H of
     # gauss_newton_system); it also keeps the Cholesky factor out of the Jacobian, which makes
     # each LM step several times cheaper.
     R_w = jax.lax.stop_gradient(R)
-    C = target.covs[partner] + R_w @ source.covs @ R_w.T
-    e = _whiten(C, target.points[partner] - a)
-    return _Pairs(jnp.where(inlier[:, None], e, 0.0), inlier, a, C)
+    C = target.covs[partners.index] + (R_w @ source.covs @ R_w.T)[:, None]
+    e = _whiten(C, r) * partners.sqrt_weight[..., None]
+    return _Pairs(jnp.where(inlier[..., None], e, 0.0), inlier, a, C)
 
 
 def retract(xi: Array, T0: Array) -> Array:
@@ -265,49 +279,71 @@ def retract_host(xi: np.ndarray, T0: np.ndarray) -> np.ndarray:
 
 
 def _residuals(xi: Array, args) -> Array:
-    T0, source, target, candidates, valid, max_d2 = args
-    return _pairs(retract(xi, T0), source, target, candidates, valid, max_d2).e
+    T0, source, target, partners, max_d2 = args
+    return _pairs(retract(xi, T0), source, target, partners, max_d2).e
 
 
 _ADJOINTS = {"unrolled": optx.RecursiveCheckpointAdjoint(), "implicit": optx.ImplicitAdjoint()}
 
 
 @jax.jit
-def gauss_newton_system(T, source: Cloud, target: Cloud, candidates, valid, max_d2):
+def gauss_newton_system(T, source: Cloud, target: Cloud, partners: Partners, max_d2):
     """H = J^T J, b = J^T e, error = e.e and the inlier count at T.
 
     J is the whitened residuals' Jacobian with respect to the increment xi = (rho, phi) of
     :func:`retract`, ``d(b - exp(phi) R a - t - rho)/d xi = -[I, -hat(R a)]``, with the weights
     held fixed as GICP does.
     """
-    pairs = _pairs(T, source, target, candidates, valid, max_d2)
+    pairs = _pairs(T, source, target, partners, max_d2)
     p, e, inlier = pairs.moved, pairs.e, pairs.inlier
     eye = jnp.broadcast_to(jnp.eye(3, dtype=p.dtype), (p.shape[0], 3, 3))
     d_rho = -eye
     d_phi = geo.hat(p - T[:3, 3])  # d(-exp(phi) q)/d phi = hat(q), q = R a
-    columns = jnp.concatenate([d_rho, d_phi], axis=-1)  # (N, 3, 6)
-    J = jax.vmap(lambda col: _whiten(pairs.C, col), in_axes=2, out_axes=2)(columns)
-    J = jnp.where(inlier[:, None, None], J, 0.0)
-    H = jnp.einsum("nki,nkj->ij", J, J)
-    b = jnp.einsum("nki,nk->i", J, e)
+    columns = jnp.concatenate([d_rho, d_phi], axis=-1)[:, None]  # (N, 1, 3, 6)
+    J = jax.vmap(lambda col: _whiten(pairs.C, col), in_axes=-1, out_axes=-1)(columns)
+    J = jnp.where(inlier[..., None, None], J * partners.sqrt_weight[..., None, None], 0.0)
+    H = jnp.einsum("nmki,nmkj->ij", J, J)
+    b = jnp.einsum("nmki,nmk->i", J, e)
     return H, b, jnp.sum(e * e), jnp.sum(inlier)
 
 
-def _lm(T0, source: Cloud, target: Cloud, candidates, valid, max_d2, inner_steps, adjoint):
-    """A few LM steps from T0 over fixed candidate sets: the increment xi (6,)."""
+def _lm(T0, source: Cloud, target: Cloud, partners: Partners, max_d2, inner_steps, adjoint):
+    """A few LM steps from T0 with fixed partners: the increment xi (6,)."""
     # The normal equations (6 x 6) are much cheaper than a QR of the (3N x 6) Jacobian.
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
-    args = (T0, source, target, candidates, valid, max_d2)
     sol = optx.least_squares(
         _residuals,
         solver,
         jnp.zeros(6, T0.dtype),
-        args,
+        (T0, source, target, partners, max_d2),
         max_steps=inner_steps,
         adjoint=_ADJOINTS[adjoint],
         throw=False,
     )
     return sol.value
+
+
+def gicp_round(
+    T0,
+    source: Cloud,
+    target: Cloud,
+    candidates,
+    valid,
+    max_d2,
+    inner_steps: int,
+    adjoint: str = "unrolled",
+    temperature=None,
+) -> tuple[Array, Array, Partners]:
+    """One outer round, traceable (jit, vmap, grad): partners at T0, then LM from T0.
+
+    Returns T (4, 4), the increment xi (6,) with ``T = retract(xi, T0)`` and the partners.
+    Partners are chosen among the candidates once, at T0, and held through the LM steps:
+    re-choosing by distance inside LM would change the Mahalanobis cost in jumps that its
+    trust region rejects.
+    """
+    partners = choose_partners(T0, source, target, candidates, valid, temperature)
+    xi = _lm(T0, source, target, partners, max_d2, inner_steps, adjoint)
+    return retract(xi, T0), xi, partners
 
 
 @partial(jax.jit, static_argnames=("inner_steps", "adjoint"))
@@ -321,19 +357,12 @@ def solve_round(
     inner_steps: int,
     adjoint: str = "unrolled",
 ) -> tuple[Array, Array, tuple]:
-    """One outer round: LM from T0, then the Gauss-Newton system at the result.
-
-    Returns T (4, 4), the increment xi (6,) with ``T = retract(xi, T0)``, and
-    :func:`gauss_newton_system`'s (H, b, error, inliers) at T, whose step decides convergence.
-    Partners are chosen among the candidates once, at T0, and held through the LM steps:
-    re-choosing by distance inside LM would change the Mahalanobis cost in jumps that its
-    trust region rejects.
-    """
-    partner, has_partner = _choose(T0, source, target, candidates, valid)
-    pairs = (partner[:, None], has_partner[:, None], max_d2)
-    xi = _lm(T0, source, target, *pairs, inner_steps, adjoint)
-    T = retract(xi, T0)
-    return T, xi, gauss_newton_system(T, source, target, *pairs)
+    """:func:`gicp_round` with hard association, then :func:`gauss_newton_system`'s
+    (H, b, error, inliers) at the result, whose step decides convergence."""
+    T, xi, partners = gicp_round(
+        T0, source, target, candidates, valid, max_d2, inner_steps, adjoint
+    )
+    return T, xi, gauss_newton_system(T, source, target, partners, max_d2)
 
 
 def align_prepared(

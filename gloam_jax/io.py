@@ -116,6 +116,14 @@ def write_atomic(path: PathLike, data: bytes | str) -> None:
         raise
 
 
+def write_figure(path: PathLike, fig, dpi: int = 110, **savefig_kwargs) -> Path:
+    """Save a matplotlib figure as PNG, atomically (see :func:`write_atomic`)."""
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=dpi, **savefig_kwargs)
+    write_atomic(path, buffer.getvalue())
+    return Path(path)
+
+
 def _parse_rows(text: str, name: str, ncols: int, what: str) -> np.ndarray:
     """Numeric table ``(N, ncols)`` float64 from whitespace-separated lines.
 

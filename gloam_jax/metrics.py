@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
-from io import BytesIO
 from pathlib import Path
 from typing import Any, Literal
 
@@ -22,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gloam_jax.errors import InputError
-from gloam_jax.io import write_atomic
+from gloam_jax.io import write_figure
 
 __all__ = [
     "DEFAULT_LENGTHS",
@@ -439,8 +438,4 @@ def plot_evaluation(
     if title:
         fig.suptitle(title)
 
-    out = Path(path)
-    buffer = BytesIO()
-    fig.savefig(buffer, format="png", dpi=110)
-    write_atomic(out, buffer.getvalue())
-    return out
+    return write_figure(path, fig, dpi=110)

@@ -18,6 +18,7 @@ entry), :func:`load_model` reads and checks it.
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import os
@@ -92,6 +93,7 @@ class GLOAMModel:
     backbone: str = "geometric"
     backbone_options: dict[str, Any] = field(default_factory=dict)
     version: int = MODEL_VERSION
+    provenance: dict[str, Any] = field(default_factory=dict)  # how it was made (training)
 
     def pca_features(self, raw: np.ndarray | Array) -> np.ndarray | Array:
         """Backbone features (N, D) -> PCA features (N, 6), NumPy or JAX."""
@@ -104,6 +106,9 @@ class GLOAMModel:
         return self.pca.transform(raw)
 
 
+INITS = ("random", "gicp")
+
+
 def init_model(
     key: Array,
     pca: FeaturePCA,
@@ -111,22 +116,54 @@ def init_model(
     eps: float = DEFAULT_EPS,
     backbone: str = "geometric",
     backbone_options: dict[str, Any] | None = None,
+    init: str = "random",
 ) -> GLOAMModel:
-    """A model with randomly initialised MLPs around a fitted PCA."""
+    """A model with initialised MLPs around a fitted PCA.
+
+    ``init="random"``: both MLPs as :meth:`MLP.init`. ``init="gicp"``: a start at plain GICP,
+    for training: output weights scaled by 0.1, the eigenvalue MLP's output bias at
+    (0, 1, 1), so Algorithm 1 gives nearly GICP's plane (eps, 1, 1) / sqrt(2), and the
+    conversion MLP's features nearly constant, so association is nearly xyz-nearest. (Not
+    exactly: with equal features the association has no gradient.)
+    """
     if pca.components.shape[0] != FEATURE_DIM:
         raise InputError(
             None, f"the PCA must give {FEATURE_DIM} dimensions, not {pca.components.shape[0]}"
         )
     if not eps > 0:
         raise InputError(None, f"eps must be positive, got {eps}")
+    if init not in INITS:
+        raise InputError(None, f"unknown init '{init}' (choose from {', '.join(INITS)})")
     k_conv, k_eig = jax.random.split(key)
+    conversion = FeatureConversionMLP.init(k_conv)
+    eigenvalue = EigenvalueEstimationMLP.init(k_eig)
+    if init == "gicp":
+        conversion = conversion._replace(w2=0.1 * conversion.w2, b2=0.0 * conversion.b2)
+        plane = jnp.array([0.0, 1.0, 1.0], jnp.float32)
+        eigenvalue = eigenvalue._replace(w2=0.1 * eigenvalue.w2, b2=plane)
     return GLOAMModel(
         pca=pca,
-        conversion=FeatureConversionMLP.init(k_conv),
-        eigenvalue=EigenvalueEstimationMLP.init(k_eig),
+        conversion=conversion,
+        eigenvalue=eigenvalue,
         eps=float(eps),
         backbone=backbone,
         backbone_options=dict(backbone_options or {}),
+        provenance={"init": init},
+    )
+
+
+def with_mlps(
+    model: GLOAMModel,
+    conversion: MLP,
+    eigenvalue: MLP,
+    provenance: dict[str, Any] | None = None,
+) -> GLOAMModel:
+    """``model`` with new MLP weights (trained ones), and what made them."""
+    return dataclasses.replace(
+        model,
+        conversion=FeatureConversionMLP(*(jnp.asarray(x, jnp.float32) for x in conversion)),
+        eigenvalue=EigenvalueEstimationMLP(*(jnp.asarray(x, jnp.float32) for x in eigenvalue)),
+        provenance=dict(provenance or model.provenance),
     )
 
 
@@ -170,6 +207,7 @@ def save_model(path: str | os.PathLike[str], model: GLOAMModel) -> None:
         "eps": model.eps,
         "backbone": model.backbone,
         "backbone_options": model.backbone_options,
+        "provenance": model.provenance,
     }
     buffer = io.BytesIO()
     # A 0-d unicode array, not a pickled object: the file loads with allow_pickle=False.
@@ -238,6 +276,9 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
     backbone, options = metadata.get("backbone"), metadata.get("backbone_options")
     if not isinstance(backbone, str) or not isinstance(options, dict):
         raise InputError(p, "metadata needs a backbone name and a backbone_options object")
+    provenance = metadata.get("provenance", {})
+    if not isinstance(provenance, dict):
+        raise InputError(p, "metadata 'provenance' must be an object")
 
     def mlp(cls: type[MLP], prefix: str) -> MLP:
         return cls(*(jnp.asarray(arrays[f"{prefix}_{k}"]) for k in MLP._fields))
@@ -250,4 +291,5 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
         backbone=backbone,
         backbone_options=options,
         version=MODEL_VERSION,
+        provenance=provenance,
     )

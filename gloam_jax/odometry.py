@@ -104,6 +104,47 @@ def deskew(
     return np.asarray(out, dtype=np.float64)[: len(points)]
 
 
+def preprocess_scan(
+    scan: np.ndarray,
+    times: np.ndarray | None,
+    config: OdometryConfig,
+    *,
+    velocity: np.ndarray | None = None,
+    frame_dt: float = 0.1,
+    model: GLOAMModel | None = None,
+    features: np.ndarray | None = None,
+    buckets: pc.StickyBuckets | None = None,
+    source: str | None = None,
+) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """One raw scan (N, 3+) -> its voxel centres (M, 3) float64, deskewed with ``velocity``
+    (se(3) per ``frame_dt``; None: not deskewed), their PCA features (M, 6) when ``model`` is
+    given (from the backbone's ``features`` (N, D)), and the number of NaN / inf points dropped.
+
+    ``times`` (N,) s from the reference time, or None for times from the azimuth. Raises
+    InputError for scans without points in range and for features of the wrong length.
+    """
+    keep, dropped = pc.range_mask(scan, config.min_range, config.max_range, source)
+    points = scan[keep, :3].astype(np.float64)
+    if len(points) == 0:
+        raise InputError(source, f"no points between {config.min_range} and {config.max_range} m")
+    t = times[keep] if times is not None else azimuth_times(points, config.sweep_duration)
+    columns = [points, t]
+    if model is not None:
+        if features is None or len(features) != len(scan):
+            rows = "no" if features is None else len(features)
+            raise InputError(source, f"features have {rows} rows but the scan has {len(scan)}")
+        # The PCA is affine, so it commutes with the voxel mean: carry 6 columns, not D.
+        columns.append(model.pca_features(features)[keep])
+    # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
+    # few voxel centres with their mean time; features are averaged per voxel alike.
+    reduced = pc.voxel_downsample(np.column_stack(columns), config.downsampling_resolution)
+    points = reduced[:, :3]
+    if config.deskew and velocity is not None:
+        size = None if buckets is None else buckets("deskew", len(points))
+        points = deskew(points, reduced[:, 3], velocity, frame_dt, size)
+    return points, (reduced[:, 4:] if model is not None else None), dropped
+
+
 class LocalMap:
     """The last keyframes, in the world frame, merged into one prepared cloud."""
 
@@ -204,27 +245,17 @@ class Odometry:
         features: np.ndarray | None,
     ) -> PreparedCloud:
         cfg = self.config
-        keep, status.num_dropped = pc.range_mask(scan, cfg.min_range, cfg.max_range, source)
-        points = scan[keep, :3].astype(np.float64)
-        if len(points) == 0:
-            raise InputError(source, f"no points between {cfg.min_range} and {cfg.max_range} m")
-        t = times[keep] if times is not None else azimuth_times(points, cfg.sweep_duration)
-        columns = [points, t]
-        if self.needs_features:
-            if len(features) != len(scan):
-                raise InputError(
-                    source, f"features have {len(features)} rows but the scan has {len(scan)}"
-                )
-            # The PCA is affine, so it commutes with the voxel mean: carry 6 columns, not D.
-            columns.append(self.model.pca_features(features)[keep])
-        # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
-        # few voxel centres with their mean time; features are averaged per voxel alike.
-        reduced = pc.voxel_downsample(np.column_stack(columns), cfg.downsampling_resolution)
-        points = reduced[:, :3]
-        if cfg.deskew and self.poses:
-            size = self.buckets("deskew", len(points))
-            points = deskew(points, reduced[:, 3], self.velocity, frame_dt, size)
-        pca = reduced[:, 4:] if self.needs_features else None
+        points, pca, status.num_dropped = preprocess_scan(
+            scan,
+            times,
+            cfg,
+            velocity=self.velocity if self.poses else None,
+            frame_dt=frame_dt,
+            model=self.model if self.needs_features else None,
+            features=features,
+            buckets=self.buckets,
+            source=source,
+        )
         return build_cloud(
             points, cfg.num_neighbors, cfg.regularizer, source, self.buckets, pca, self.learned
         )

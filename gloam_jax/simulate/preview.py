@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from io import BytesIO
 from pathlib import Path
 
 import numpy as np
 
-from gloam_jax.io import KittiSequence, write_atomic
+from gloam_jax.io import KittiSequence, write_figure
 from gloam_jax.simulate.scene import CLASS_NAMES, ROAD, SIDEWALK, TERRAIN
 from gloam_jax.simulate.trajectory import interpolate_poses
 
@@ -44,9 +43,7 @@ def _colours(labels: np.ndarray) -> np.ndarray:
 
 
 def _save(fig, path: Path) -> None:
-    buffer = BytesIO()
-    fig.savefig(buffer, format="png", dpi=130, bbox_inches="tight")
-    write_atomic(path, buffer.getvalue())
+    write_figure(path, fig, dpi=130, bbox_inches="tight")
 
 
 def _figure(size=(9, 9)):

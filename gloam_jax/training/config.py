@@ -1,0 +1,56 @@
+"""Training settings: what to train on, how to register, and each mode's own knobs.
+
+A ``configs/train_*.yaml`` file holds the fields of :class:`TrainConfig`; the nested
+``odometry`` (preprocessing: range crop, voxel size, k-NN), ``batch`` (registrations), ``tpe``
+and ``grad`` sections take the fields of their classes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+from gloam_jax.batch import BatchConfig
+from gloam_jax.odometry import OdometryConfig
+from gloam_jax.training.protocol import TRAIN_SEQUENCES
+
+
+@dataclass(frozen=True)
+class TPEConfig:
+    """The paper's black-box search: optuna's TPE over every MLP weight."""
+
+    n_trials: int = 200
+    n_startup_trials: int = 10  # random trials before TPE models the good ones
+    bound: float = 1.0  # each weight searched in [init - bound, init + bound]
+    storage: str | None = None  # optuna RDB URL; None: sqlite:///RUN/study.db
+    study_name: str = "gloam"
+
+
+@dataclass(frozen=True)
+class GradConfig:
+    """Gradient descent through the registrations (optax Adam)."""
+
+    steps: int = 40
+    learning_rate: float = 0.02
+    clip_norm: float = 1.0  # global gradient norm clip
+    eval_every: int = 2  # steps between hard-association evaluations of the training loss
+    checkpoint_every: int = 1  # steps between checkpoints
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """A training run: data, model start, registrations, and the chosen mode's settings."""
+
+    mode: Literal["tpe", "grad"] = "grad"
+    method: Literal["gicp_da", "gicp_ce", "gloam"] = "gloam"  # which MLPs are trained
+    data: str = "data/protocol"  # KITTI-layout root of the training sequences
+    sequences: tuple[str, ...] = TRAIN_SEQUENCES
+    frames: int | None = None  # first N scans of each sequence (None: all)
+    init_model: str | None = None  # start from this model file (its PCA and MLPs)
+    init: Literal["random", "gicp"] = "gicp"  # without init_model: how the MLPs start
+    pca_every: int = 25  # without init_model: fit the PCA on every N-th training scan
+    seed: int = 0
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    batch: BatchConfig = field(default_factory=BatchConfig)
+    tpe: TPEConfig = field(default_factory=TPEConfig)
+    grad: GradConfig = field(default_factory=GradConfig)

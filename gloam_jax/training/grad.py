@@ -1,0 +1,154 @@
+"""The extension the paper's conclusion asks for: gradients of the relative trajectory error
+with respect to the MLP weights, through the GICP solves, with optax's Adam.
+
+The loss is :func:`gloam_jax.batch.loss` (Eq. 8 over the training windows, frame-to-frame),
+with the batch settings of the run: soft association gives the conversion MLP a gradient
+through the choice among candidates; ``adjoint`` picks optimistix's unrolled
+(``RecursiveCheckpointAdjoint``) or implicit (``ImplicitAdjoint``) differentiation of the LM
+solves. Steps with a non-finite loss or gradient are skipped. Every ``eval_every`` steps the
+training loss is measured as TPE measures it (hard association), and the best weights by that
+number are kept. Checkpoints are written atomically; a rerun in the same folder resumes.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from io import BytesIO
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from gloam_jax import batch, io
+from gloam_jax.errors import InputError
+from gloam_jax.training.problem import Clock, Params, Problem, plot_histories, write_history
+
+CHECKPOINT = "checkpoint.npz"
+
+
+def _optimizer(problem: Problem) -> optax.GradientTransformation:
+    cfg = problem.config.grad
+    return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), optax.adam(cfg.learning_rate))
+
+
+def save_checkpoint(path, trees: dict, meta: dict) -> None:
+    """Pytrees (by name) and JSON metadata in one ``.npz``, atomically."""
+    arrays = {}
+    for name, tree in trees.items():
+        for i, leaf in enumerate(jax.tree_util.tree_leaves(tree)):
+            arrays[f"{name}_{i}"] = np.asarray(leaf)
+    buffer = BytesIO()
+    np.savez(buffer, meta=np.array(json.dumps(meta)), **arrays)
+    io.write_atomic(path, buffer.getvalue())
+
+
+def load_checkpoint(path, templates: dict) -> tuple[dict, dict]:
+    """Read :func:`save_checkpoint`'s file into the structures of ``templates``."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            trees = {}
+            for name, template in templates.items():
+                leaves, treedef = jax.tree_util.tree_flatten(template)
+                loaded = [z[f"{name}_{i}"] for i in range(len(leaves))]
+                for old, new in zip(leaves, loaded, strict=True):
+                    if np.shape(old) != new.shape:
+                        raise ValueError(f"{name}: shape {new.shape}, expected {np.shape(old)}")
+                typed = [
+                    jnp.asarray(x, jnp.asarray(t).dtype)
+                    for x, t in zip(loaded, leaves, strict=True)
+                ]
+                trees[name] = jax.tree_util.tree_unflatten(treedef, typed)
+    except (OSError, KeyError, ValueError) as e:
+        raise InputError(path, f"not a usable checkpoint of this run ({e})") from None
+    return trees, meta
+
+
+def _finite(tree) -> jax.Array:
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]))
+
+
+def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | None = None):
+    """Run (or resume) gradient training; export the best weights to ``RUN/model.npz``.
+
+    ``progress(step, steps, best)`` after each step. Returns the exported model.
+    """
+    cfg, run_dir = problem.config.grad, problem.run_dir
+    optimizer = _optimizer(problem)
+    params = problem.init_params
+    state = optimizer.init(params)
+    best_params, best, history, step = params, np.inf, [], 0
+    clock = Clock()
+    path = run_dir / CHECKPOINT
+    if path.is_file():
+        trees, meta = load_checkpoint(
+            path, {"params": params, "state": state, "best_params": best_params}
+        )
+        params, state, best_params = trees["params"], trees["state"], trees["best_params"]
+        step, best, history = meta["step"], meta["best"], meta["history"]
+        clock = Clock(meta["elapsed"])
+
+    data, config = problem.data, problem.config.batch
+
+    def loss(p: Params, scans, pairs):
+        return batch.loss(problem.learned(p), batch.BatchData(scans, pairs, data.windows), config)
+
+    @jax.jit
+    def update(p, s, scans, pairs):
+        value, grads = jax.value_and_grad(loss)(p, scans, pairs)
+        ok = jnp.isfinite(value) & _finite(grads)
+        grads = jax.tree_util.tree_map(lambda g: jnp.where(ok, g, 0.0), grads)
+        updates, new_s = optimizer.update(grads, s, p)
+        new_p = optax.apply_updates(p, updates)
+        keep = lambda new, old: jax.tree_util.tree_map(  # noqa: E731
+            lambda a, b: jnp.where(ok, a, b), new, old
+        )
+        return keep(new_p, p), keep(new_s, s), value, ok
+
+    def evaluate(p: Params, at: int, soft: float | None) -> None:
+        nonlocal best, best_params
+        t_err, r_err = problem.training_loss(p)
+        if t_err < best:
+            best, best_params = t_err, p
+        history.append(
+            {"step": at, "wall_s": clock.lap(), "t_err": t_err, "r_err": r_err,
+             "soft_loss": soft, "best_t_err": best}
+        )  # fmt: skip
+
+    def checkpoint() -> None:
+        meta = {"step": step, "best": best, "history": history, "elapsed": clock.lap()}
+        trees = {"params": params, "state": state, "best_params": best_params}
+        save_checkpoint(path, trees, meta)
+        write_history(run_dir, history)
+
+    if step == 0 and not history:
+        evaluate(params, 0, None)
+    soft = None
+    while step < cfg.steps:
+        params, state, value, ok = update(params, state, data.scans, data.pairs)
+        soft = float(value) if bool(ok) else None
+        step += 1
+        clock.lap()
+        if step % cfg.eval_every == 0 or step == cfg.steps:
+            evaluate(params, step, soft)
+        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+            checkpoint()
+        if progress is not None:
+            progress(step, cfg.steps, best)
+    write_history(run_dir, history)
+    plot_histories(
+        {"training t_err (hard association)": (
+            [h["wall_s"] for h in history], [100 * h["t_err"] for h in history])},
+        run_dir / "loss_curve.png",
+        f"gradient ({config.adjoint} adjoint, {config.association} association), "
+        f"{problem.config.method}",
+    )  # fmt: skip
+    if not np.isfinite(best):
+        raise InputError(run_dir, "training produced no finite loss")
+    return problem.export(
+        best_params,
+        run_dir / "model.npz",
+        {"train_t_err": best, "steps": step, "wall_s": history[-1]["wall_s"]},
+    )

@@ -1,0 +1,234 @@
+"""What both training modes share: the run folder, the starting model, the prepared training
+data, the trainable parameters and the hard-association evaluation of the training loss.
+
+A run folder holds ``config.yaml`` (the settings; a later run in the same folder must use the
+same ones, and then resumes), ``init_model.npz`` (the start), ``cache/`` (prepared windows),
+``history.json`` (training loss against wall time), ``loss_curve.png`` and, at the end,
+``model.npz`` (the best weights found, with their provenance).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from gloam_jax import io
+from gloam_jax.batch import BatchData, Evaluator, load_windows
+from gloam_jax.config import config_dict, dump_config
+from gloam_jax.errors import InputError
+from gloam_jax.features import Backbone, fit_pca, get_backbone
+from gloam_jax.models import (
+    METHODS,
+    GLOAMModel,
+    Learned,
+    init_model,
+    load_model,
+    save_model,
+    with_mlps,
+)
+from gloam_jax.training.config import TrainConfig
+
+Progress = Callable[[str, int, int], None]  # (what, done, total)
+
+
+class Params(NamedTuple):
+    """The trainable weights: both MLPs (a method that uses one leaves the other unchanged)."""
+
+    conversion: Any
+    eigenvalue: Any
+
+
+def fit_initial_model(
+    root: str | Path,
+    sequences: list[str] | tuple[str, ...],
+    extractor: Backbone,
+    *,
+    every: int = 25,
+    seed: int = 0,
+    init: str = "random",
+    keep_backbone_options: bool = True,
+    progress: Progress | None = None,
+) -> GLOAMModel:
+    """Fit the frozen PCA on every ``every``-th scan of the training sequences and wrap it
+    with initialised MLPs (:func:`gloam_jax.models.init_model`)."""
+    rows = []
+    for name in sequences:
+        seq = io.KittiSequence(root, name)
+        frames = range(0, len(seq), every)
+        for k, i in enumerate(frames):
+            rows.append(extractor(seq.scan(i), path=seq.scan_path(i), frame=i))
+            if progress is not None:
+                progress(f"PCA features {name}", k + 1, len(frames))
+    return init_model(
+        jax.random.PRNGKey(seed),
+        fit_pca(rows, seed=seed),
+        backbone=extractor.name,
+        backbone_options=extractor.options() if keep_backbone_options else {},
+        init=init,
+    )
+
+
+@dataclasses.dataclass
+class Problem:
+    """A prepared training run (see :func:`setup`)."""
+
+    config: TrainConfig
+    run_dir: Path
+    model: GLOAMModel  # the start
+    data: BatchData
+    evaluate_hard: Evaluator  # the training loss as reported (hard association)
+
+    @property
+    def init_params(self) -> Params:
+        return Params(self.model.conversion, self.model.eigenvalue)
+
+    @property
+    def uses(self) -> tuple[bool, bool]:
+        """Whether the method uses (conversion, eigenvalue)."""
+        return METHODS[self.config.method]
+
+    def learned(self, params: Params) -> Learned:
+        """The parts the method uses, with ``params``'s weights."""
+        da, ce = self.uses
+        return Learned(
+            params.conversion if da else None, params.eigenvalue if ce else None, self.model.eps
+        )
+
+    def training_loss(self, params: Params) -> tuple[float, float]:
+        """Mean t_err (fraction) and r_err (rad/m) over the training windows, hard
+        association: the number both modes are compared on."""
+        result = self.evaluate_hard(self.learned(params))
+        return float(np.mean(result.t_err)), float(np.mean(result.r_err))
+
+    def export(self, params: Params, path: Path, extra: dict[str, Any]) -> GLOAMModel:
+        """Write ``params`` as a model file with its provenance; returns the model."""
+        provenance = {
+            "mode": self.config.mode,
+            "method": self.config.method,
+            "seed": self.config.seed,
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
+            "config": config_dict(self.config),
+            **extra,
+        }
+        model = with_mlps(self.model, params.conversion, params.eigenvalue, provenance)
+        save_model(path, model)
+        return model
+
+
+def _check_run_dir(config: TrainConfig, run_dir: Path) -> None:
+    """Write the settings, or check that a resumed run uses the same ones."""
+    path = run_dir / "config.yaml"
+    if path.exists():
+        from gloam_jax.config import load_config
+
+        old = load_config(path, TrainConfig)
+        if config_dict(old) != config_dict(config):
+            changed = [k for k, v in config_dict(config).items() if config_dict(old)[k] != v]
+            raise InputError(
+                path,
+                f"this run folder holds a run with other settings ({', '.join(changed)}); "
+                "use another --out to start a new one",
+            )
+    else:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        dump_config(config, path)
+
+
+def setup(
+    config: TrainConfig,
+    run_dir: str | Path,
+    *,
+    cache_dir: str | Path | None = None,
+    progress: Progress | None = None,
+) -> Problem:
+    """Prepare a training run in ``run_dir``: the start model (``config.init_model``, or a PCA
+    fitted on the training scans with initialised MLPs, saved as ``init_model.npz`` so a
+    resumed run starts alike) and the prepared windows (cached in ``cache_dir``, default
+    ``run_dir/cache``)."""
+    run_dir = Path(run_dir)
+    _check_run_dir(config, run_dir)
+    start = run_dir / "init_model.npz"
+    if start.is_file():
+        model = load_model(start)
+    elif config.init_model is not None:
+        model = load_model(config.init_model)
+        save_model(start, model)
+    else:
+        extractor = get_backbone("geometric")
+        model = fit_initial_model(
+            config.data,
+            config.sequences,
+            extractor,
+            every=config.pca_every,
+            seed=config.seed,
+            init=config.init,
+            progress=progress,
+        )
+        save_model(start, model)
+    backbone = get_backbone(model.backbone, **model.backbone_options)
+
+    def step(name: str, total: int, k: int) -> None:
+        if progress is not None:
+            progress(f"preparing {name}", k + 1, total)
+
+    data = load_windows(
+        config.data,
+        config.sequences,
+        config.odometry,
+        config.batch,
+        model,
+        backbone,
+        frames=config.frames,
+        cache_dir=run_dir / "cache" if cache_dir is None else cache_dir,
+        progress=step,
+    )
+    hard = dataclasses.replace(config.batch, association="hard")
+    return Problem(config, run_dir, model, data, Evaluator(data, hard))
+
+
+def write_history(run_dir: Path, history: list[dict[str, Any]]) -> None:
+    io.write_atomic(run_dir / "history.json", json.dumps(history, indent=1))
+
+
+def plot_histories(
+    curves: dict[str, tuple[list[float], list[float]]], path: str | Path, title: str
+) -> None:
+    """Training t_err (%) against wall time (s): one line per label ``(wall_s, t_err %)``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for label, (wall, value) in curves.items():
+        ax.plot(wall, value, marker="." if len(wall) < 60 else None, label=label)
+    ax.set_xlabel("wall time (s)")
+    ax.set_ylabel("training t_err (%)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    io.write_figure(path, fig, dpi=120)
+    plt.close(fig)
+
+
+class Clock:
+    """Wall time of the training work itself, accumulated across resumed runs."""
+
+    def __init__(self, elapsed: float = 0.0) -> None:
+        self.elapsed = elapsed
+        self._t0 = time.perf_counter()
+
+    def lap(self) -> float:
+        now = time.perf_counter()
+        self.elapsed += now - self._t0
+        self._t0 = now
+        return self.elapsed

@@ -1,0 +1,38 @@
+"""The training and evaluation protocol: the paper's split of KITTI sequences, as simulated
+windows of the real ground-truth trajectories.
+
+The paper trains on KITTI 01, 03, 05, 07, 09 and tests on 00, 02, 04, 06, 08, 10. We drive the
+simulator along a window of each real trajectory, in a scene style that resembles the
+sequence (city blocks, residential streets, the highway of 01 and the country road of 04).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+TRAIN_SEQUENCES: tuple[str, ...] = ("01", "03", "05", "07", "09")
+TEST_SEQUENCES: tuple[str, ...] = ("00", "02", "04", "06", "08", "10")
+
+
+class Window(NamedTuple):
+    """A simulated window of a KITTI sequence: scene style and first pose index."""
+
+    style: str
+    start: int
+
+
+# Starts are chosen so that 120 frames cover 70-180 m (the car moves in each window).
+WINDOWS: dict[str, Window] = {
+    "00": Window("urban", 0),
+    "01": Window("highway", 0),
+    "02": Window("suburban", 0),
+    "03": Window("suburban", 300),
+    "04": Window("highway", 0),
+    "05": Window("suburban", 0),
+    "06": Window("suburban", 0),
+    "07": Window("urban", 500),
+    "08": Window("urban", 100),
+    "09": Window("suburban", 0),
+    "10": Window("suburban", 100),
+}
+DEFAULT_FRAMES = 120

@@ -1,0 +1,46 @@
+"""Simulate the training/test protocol: one window per KITTI sequence 00-10, in the KITTI
+layout, along the real ground-truth trajectories (see gloam_jax.training.protocol).
+
+    python scripts/simulate_protocol.py --out data/protocol [--frames 120] [--sequences 01,03]
+
+Resumable: a sequence already complete is skipped, an interrupted one continues.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from gloam_jax.simulate import simulate
+from gloam_jax.training.protocol import DEFAULT_FRAMES, TEST_SEQUENCES, TRAIN_SEQUENCES, WINDOWS
+
+POSES = Path(__file__).resolve().parents[2] / "shared/data/kitti_gt_poses"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("data/protocol"))
+    parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES)
+    parser.add_argument("--poses", type=Path, default=POSES, help="KITTI ground-truth poses")
+    parser.add_argument("--sequences", default=",".join(TRAIN_SEQUENCES + TEST_SEQUENCES))
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+    for name in args.sequences.split(","):
+        window = WINDOWS[name]
+        t0 = time.perf_counter()
+        simulate(
+            args.out,
+            trajectory=args.poses / f"{name}.txt",
+            start=window.start,
+            frames=args.frames,
+            style=window.style,
+            seed=args.seed + int(name),
+            sequence=name,
+        )
+        print(f"{name} ({window.style}, from pose {window.start}): "
+              f"{time.perf_counter() - t0:.1f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()
