@@ -35,7 +35,7 @@ from gloam_jax import io
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone
-from gloam_jax.gicp import Cloud, gicp_round
+from gloam_jax.gicp import Cloud, attributes, gicp_round
 from gloam_jax.models import GLOAMModel, Learned
 from gloam_jax.neighbors import KdTree
 from gloam_jax.odometry import OdometryConfig, preprocess_scan
@@ -225,16 +225,18 @@ def prepare_window(
     }
 
 
+# The BatchConfig fields that prepare_window uses; the others act on the device side only.
+_PREPARATION_FIELDS = ("num_candidates", "candidate_radius", "max_source_points", "seed")
+
+
 def _cache_key(seq, frames, odometry, config, model, backbone) -> str:
     parts = {
         "sequence": str(seq.sequence_dir.resolve()),
         "frames": [frames.start, frames.stop],
         "odometry": asdict(odometry),
-        "batch": {k: v for k, v in asdict(config).items() if k not in ("association",
-                  "temperature", "adjoint", "rounds", "inner_steps",
-                  "max_correspondence_distance", "segment_fractions", "segment_step")},
+        "batch": {k: getattr(config, k) for k in _PREPARATION_FIELDS},
         "backbone": None if backbone is None else [backbone.name, backbone.options()],
-    }  # fmt: skip
+    }
     h = hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode())
     if model is not None:
         for a in model.pca:
@@ -360,18 +362,6 @@ def stack(windows: list[dict], config: BatchConfig) -> BatchData:
 # Device side: registrations, trajectories, errors
 
 
-def _attributes(learned: Learned, values: Array, vectors: Array, pca: Array, eps_plane: float):
-    """Covariances (..., 3, 3) and association features (..., F) of prepared points."""
-    if learned.eigenvalue is None:
-        covs = cov.recompose(vectors, cov.plane_values(values, eps_plane))
-    else:
-        raw = learned.eigenvalue(pca.astype(vectors.dtype))
-        covs = cov.recompose(vectors, cov.learned_values(raw, learned.eps).astype(vectors.dtype))
-    if learned.conversion is None:
-        return covs, jnp.zeros((*pca.shape[:-1], 0), vectors.dtype)
-    return covs, learned.conversion(pca.astype(vectors.dtype))
-
-
 def register_pair(learned: Learned, scans: ScanSet, pair: PairSet, config: BatchConfig) -> Array:
     """One registration (``pair`` holds one row of each PairSet field): ``T_target_source``
     (4, 4) after ``config.rounds`` GICP rounds from ``pair.T_init``."""
@@ -379,13 +369,13 @@ def register_pair(learned: Learned, scans: ScanSet, pair: PairSet, config: Batch
     P, K = pair.candidates.shape
     # The target as just the candidate rows (P * K), so nothing of size Q is gathered per pair.
     flat = pair.candidates.reshape(-1)
-    t_covs, t_feats = _attributes(
-        learned, scans.values[t, flat], scans.vectors[t, flat], scans.pca[t, flat], cov.PLANE_EPS
+    t_covs, t_feats = attributes(
+        scans.values[t, flat], scans.vectors[t, flat], scans.pca[t, flat], learned, "plane"
     )
     target = Cloud(scans.points[t, flat], t_covs, scans.mask[t, flat], t_feats)
     rows = pair.rows
-    s_covs, s_feats = _attributes(
-        learned, scans.values[s, rows], scans.vectors[s, rows], scans.pca[s, rows], cov.PLANE_EPS
+    s_covs, s_feats = attributes(
+        scans.values[s, rows], scans.vectors[s, rows], scans.pca[s, rows], learned, "plane"
     )
     source = Cloud(scans.points[s, rows], s_covs, pair.row_mask & scans.mask[s, rows], s_feats)
     local = jnp.arange(P * K, dtype=jnp.int32).reshape(P, K)

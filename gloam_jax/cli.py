@@ -242,24 +242,17 @@ def _run_dir(out: Path) -> Path:
 def _run_odometry(
     data: Path,
     sequence: str,
-    config_path: Path | None,
+    config,
     frames: int | None,
     run_dir: Path,
-    weights: Path | None = None,
     features: Path | None = None,
 ) -> dict:
-    import dataclasses
-
-    from gloam_jax.config import load_config
     from gloam_jax.io import KittiSequence
     from gloam_jax.pipeline import run_sequence
 
-    config = load_config(config_path)
-    if weights is not None:
-        config = dataclasses.replace(config, model=str(weights))
     total = len(KittiSequence(data, sequence)) if frames is None else frames
     with _progress() as bar:
-        task = bar.add_task(f"odometry {sequence}", total=total, rate="")
+        task = bar.add_task(f"{config.method} {sequence}", total=total, rate="")
 
         def step(i: int, ms: float) -> None:
             bar.update(task, completed=i + 1, rate=f"{ms:.0f} ms/frame")
@@ -308,7 +301,14 @@ def run(
     ] = None,
 ) -> None:
     """Run LiDAR odometry on a KITTI-layout sequence (real or simulated) and score it."""
-    _run_odometry(data, sequence, config, frames, _run_dir(out), weights, features)
+    import dataclasses
+
+    from gloam_jax.config import load_config
+
+    settings = load_config(config)
+    if weights is not None:
+        settings = dataclasses.replace(settings, model=str(weights))
+    _run_odometry(data, sequence, settings, frames, _run_dir(out), features)
 
 
 @app.command(
@@ -388,6 +388,9 @@ def train(
     ),
     trials: Annotated[int | None, typer.Option(min=1, help="TPE trials (overrides).")] = None,
     steps: Annotated[int | None, typer.Option(min=1, help="Gradient steps (overrides).")] = None,
+    learning_rate: Annotated[
+        float | None, typer.Option(min=0.0, help="Adam's learning rate (overrides).")
+    ] = None,
     cache: Annotated[
         Path | None, typer.Option(help="Folder for prepared training windows (shared by runs).")
     ] = None,
@@ -408,8 +411,9 @@ def train(
         cfg = dataclasses.replace(cfg, data=str(data))
     if trials is not None:
         cfg = dataclasses.replace(cfg, tpe=dataclasses.replace(cfg.tpe, n_trials=trials))
-    if steps is not None:
-        cfg = dataclasses.replace(cfg, grad=dataclasses.replace(cfg.grad, steps=steps))
+    grad = {"steps": steps, "learning_rate": learning_rate}
+    grad = {k: v for k, v in grad.items() if v is not None}
+    cfg = dataclasses.replace(cfg, grad=dataclasses.replace(cfg.grad, **grad))
     with _progress() as bar:
         tasks: dict[str, int] = {}
 
@@ -452,13 +456,37 @@ def demo(
     ),
     seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
 ) -> None:
-    """Simulate a short urban drive (cached), run GICP odometry on it and score it."""
+    """Simulate a short urban drive (cached), run GICP and Generalized LOAM (the shipped
+    model) odometry on it, and score both."""
+    import dataclasses
+
+    from gloam_jax.odometry import OdometryConfig
     from gloam_jax.simulate.sequence import FORMAT_VERSION
 
     data = _cache_dir() / f"demo-{__version__}-f{FORMAT_VERSION}-seed{seed}-n{frames}"
     seq_dir, elapsed = _run_simulation(data, frames, seed=seed, style="urban", sequence="00")
     console.print(f"simulated sequence: {seq_dir} ({elapsed:.1f} s; cached for the next run)")
-    _run_odometry(data, "00", None, None, _run_dir(out))
+    gicp = OdometryConfig()
+    # configs/gloam.yaml: the learned parts of the shipped model, 5 association candidates.
+    gloam = dataclasses.replace(
+        gicp, method="gloam", model="default",
+        gicp=dataclasses.replace(gicp.gicp, num_candidates=5),
+    )  # fmt: skip
+    run_dir = _run_dir(out)
+    results = {
+        c.method: _run_odometry(data, "00", c, None, run_dir / c.method) for c in (gicp, gloam)
+    }
+    table = Table(title="GICP vs Generalized LOAM on the demo drive")
+    for column in ("method", "t_err (%)", "r_err (deg/100 m)", "ATE rmse (m)", "ms/frame"):
+        table.add_column(column, justify="right")
+    for method, r in results.items():
+        if "t_err_percent" not in r:
+            continue
+        table.add_row(
+            method, f"{r['t_err_percent']:.3f}", f"{r['r_err_deg_per_100m']:.3f}",
+            f"{r['ate']['rmse']:.3f}", f"{r['median_ms_per_frame']:.0f}",
+        )  # fmt: skip
+    console.print(table)
 
 
 if __name__ == "__main__":

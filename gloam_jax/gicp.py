@@ -124,25 +124,34 @@ class RegistrationResult(NamedTuple):
     error: float
 
 
+def attributes(
+    values: Array, vectors: Array, pca_features: Array, learned: Learned, regularizer: str
+) -> tuple[Array, Array]:
+    """Covariances (..., 3, 3) and association features (..., F) of points whose k-NN
+    covariances have ascending eigenvalues (..., 3) and eigenvectors (..., 3, 3), with PCA
+    features (..., 6) (any width when ``learned`` uses none).
+
+    Plain GICP regularises the eigenvalues (``regularizer``) and has no features (F = 0); a
+    learned eigenvalue MLP replaces the regulariser (Algorithm 1), a conversion MLP gives the
+    features of data association (F = 3).
+    """
+    if learned.eigenvalue is None:
+        covs = cov.recompose(vectors, cov.EIGENVALUE_RULES[regularizer](values))
+    else:
+        raw = learned.eigenvalue(pca_features.astype(vectors.dtype))
+        covs = cov.recompose(vectors, cov.learned_values(raw, learned.eps).astype(vectors.dtype))
+    if learned.conversion is None:
+        return covs, jnp.zeros((*vectors.shape[:-2], 0), vectors.dtype)
+    return covs, learned.conversion(pca_features.astype(vectors.dtype))
+
+
 @partial(jax.jit, static_argnames=("regularizer",))
 def cloud_attributes(
     points: Array, neighbours: Array, pca_features: Array, learned: Learned, regularizer: str
 ) -> tuple[Array, Array]:
-    """Covariances (N, 3, 3) and association features (N, F) of a cloud: points (N, 3),
-    k-NN indices (N, k), PCA features (N, 6) (any width when ``learned`` uses none).
-
-    Plain GICP regularises the k-NN covariances (``regularizer``) and has no features (F = 0);
-    a learned eigenvalue MLP replaces the regulariser (Algorithm 1), a conversion MLP gives
-    the features of data association (F = 3).
-    """
-    raw = cov.knn_covariances(points, neighbours)
-    if learned.eigenvalue is None:
-        covs = cov.REGULARIZERS[regularizer](raw)
-    else:
-        covs = cov.learned(raw, learned.eigenvalue(pca_features.astype(raw.dtype)), learned.eps)
-    if learned.conversion is None:
-        return covs, jnp.zeros((points.shape[0], 0), raw.dtype)
-    return covs, learned.conversion(pca_features.astype(raw.dtype))
+    """:func:`attributes` of points (N, 3) from their k-NN indices (N, k)."""
+    values, vectors = cov.eigendecompose(cov.knn_covariances(points, neighbours))
+    return attributes(values, vectors, pca_features, learned, regularizer)
 
 
 def prepare(
@@ -239,17 +248,15 @@ class _Pairs(NamedTuple):
     C: Array  # (N, J, 3, 3) combined covariances C_b + R C_a R^T
 
 
-def _pairs(T: Array, source: Cloud, target: Cloud, partners: Partners, max_d2) -> _Pairs:
-    """Whitened residuals of each source point and its partners at T."""
-    R = T[:3, :3]
-    a = source.points @ R.T + T[:3, 3]
+def _pairs(
+    T: Array, source: Cloud, target: Cloud, partners: Partners, max_d2, R_weights: Array
+) -> _Pairs:
+    """Whitened residuals of each source point and its partners at T, the weights
+    ``C_b + R C_a R^T`` taken at the rotation ``R_weights``."""
+    a = source.points @ T[:3, :3].T + T[:3, 3]
     r = target.points[partners.index] - a[:, None, :]
     inlier = source.mask[:, None] & (partners.sqrt_weight > 0) & (jnp.sum(r * r, axis=-1) < max_d2)
-    # The weights hold the rotation fixed within a step, as GICP does (H of
-    # gauss_newton_system); it also keeps the Cholesky factor out of the Jacobian, which makes
-    # each LM step several times cheaper.
-    R_w = jax.lax.stop_gradient(R)
-    C = target.covs[partners.index] + (R_w @ source.covs @ R_w.T)[:, None]
+    C = target.covs[partners.index] + (R_weights @ source.covs @ R_weights.T)[:, None]
     e = _whiten(C, r) * partners.sqrt_weight[..., None]
     return _Pairs(jnp.where(inlier[..., None], e, 0.0), inlier, a, C)
 
@@ -279,8 +286,12 @@ def retract_host(xi: np.ndarray, T0: np.ndarray) -> np.ndarray:
 
 
 def _residuals(xi: Array, args) -> Array:
+    # The weights hold the round's starting rotation, as GICP holds them fixed within a
+    # linearisation: the Cholesky factor stays out of the Jacobian (several times cheaper
+    # steps), and, being constant in xi rather than cut by stop_gradient, the residual is
+    # exactly the function LM minimises, so gradients through the solve are exact too.
     T0, source, target, partners, max_d2 = args
-    return _pairs(retract(xi, T0), source, target, partners, max_d2).e
+    return _pairs(retract(xi, T0), source, target, partners, max_d2, T0[:3, :3]).e
 
 
 _ADJOINTS = {"unrolled": optx.RecursiveCheckpointAdjoint(), "implicit": optx.ImplicitAdjoint()}
@@ -292,9 +303,9 @@ def gauss_newton_system(T, source: Cloud, target: Cloud, partners: Partners, max
 
     J is the whitened residuals' Jacobian with respect to the increment xi = (rho, phi) of
     :func:`retract`, ``d(b - exp(phi) R a - t - rho)/d xi = -[I, -hat(R a)]``, with the weights
-    held fixed as GICP does.
+    held fixed at T as GICP does.
     """
-    pairs = _pairs(T, source, target, partners, max_d2)
+    pairs = _pairs(T, source, target, partners, max_d2, T[:3, :3])
     p, e, inlier = pairs.moved, pairs.e, pairs.inlier
     eye = jnp.broadcast_to(jnp.eye(3, dtype=p.dtype), (p.shape[0], 3, 3))
     d_rho = -eye

@@ -186,7 +186,9 @@ def learned_parts(model: GLOAMModel | None, method: str) -> Learned:
         raise InputError(None, f"unknown method '{method}' (choose from {', '.join(METHODS)})")
     da, ce = METHODS[method]
     if (da or ce) and model is None:
-        raise InputError(None, f"method '{method}' needs a model file (--weights)")
+        raise InputError(
+            None, f"method '{method}' needs a model file (--weights FILE, or 'default')"
+        )
     if model is None:
         return Learned()
     return Learned(model.conversion if da else None, model.eigenvalue if ce else None, model.eps)
@@ -232,9 +234,20 @@ def _expected_shapes(d: int) -> dict[str, tuple[int, ...]]:
     return shapes
 
 
+SHIPPED = "default"
+"""The name that :func:`load_model` (and ``--weights``, ``model:`` in configs) resolves to the
+model trained and shipped with the package (``gloam_jax/data/gloam_default.npz``)."""
+
+
+def shipped_model_path() -> Path:
+    """Path of the shipped model file (its provenance records how it was trained)."""
+    return Path(__file__).resolve().parent / "data" / "gloam_default.npz"
+
+
 def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
-    """Read a file written by :func:`save_model`; a bad file is a one-line InputError."""
-    p = Path(path)
+    """Read a file written by :func:`save_model` (or ``"default"``: the shipped model); a bad
+    file is a one-line InputError."""
+    p = shipped_model_path() if str(path) == SHIPPED else Path(path)
     if not p.is_file():
         raise InputError(p, "model file not found")
     try:

@@ -38,8 +38,10 @@ def main() -> None:
             seed=args.seed + int(name),
             sequence=name,
         )
-        print(f"{name} ({window.style}, from pose {window.start}): "
-              f"{time.perf_counter() - t0:.1f} s", flush=True)
+        print(
+            f"{name} ({window.style}, from pose {window.start}): {time.perf_counter() - t0:.1f} s",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

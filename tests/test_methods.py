@@ -121,8 +121,10 @@ def test_init_model_then_run_gloam_from_the_command_line(sim_sequence, tmp_path)
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     assert len(io.read_kitti_poses(tmp_path / "runs" / "latest" / "00_poses_kitti.txt")) == 5
+    no_model = tmp_path / "no_model.yaml"
+    no_model.write_text("method: gloam\nmodel: null\n")
     missing = runner.invoke(
-        app, ["run", str(sim_sequence), "--config", "configs/gloam.yaml", "--frames", "3"]
+        app, ["run", str(sim_sequence), "--config", str(no_model), "--frames", "3"]
     )
     assert missing.exit_code == 2 and "needs a model file" in missing.output
 

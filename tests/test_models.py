@@ -170,3 +170,33 @@ def test_bad_model_files(tmp_path, model):
     )
     with pytest.raises(InputError, match=r"'conversion_w1' has shape \(5, 4\), expected \(6, 4\)"):
         load_model(broken)
+
+
+def test_gicp_init_starts_near_the_plane_regulariser(model):
+    raw, m = model
+    g = init_model(jax.random.PRNGKey(4), m.pca, init="gicp")
+    f = g.pca_features(raw)
+    values = np.asarray(cov.learned_values(g.eigenvalue(f), g.eps))
+    plane = np.array([0.0, 1.0, 1.0]) / np.sqrt(2)
+    assert np.abs(values - plane).max() < 0.2
+    assert np.median(values[:, 0]) < 0.1  # the normal direction stays thin
+    # Association features vary (they need a gradient) but little against metres.
+    converted = np.asarray(g.conversion(f))
+    assert 0 < converted.std(axis=0).max() < 0.3
+    with pytest.raises(InputError, match="unknown init 'plane'"):
+        init_model(jax.random.PRNGKey(4), m.pca, init="plane")
+
+
+def test_provenance_round_trip(tmp_path, model):
+    _, m = model
+    info = {"mode": "grad", "train_t_err": 0.0071, "config": {"seed": 3}}
+    save_model(tmp_path / "m.npz", dataclasses.replace(m, provenance=info))
+    assert load_model(tmp_path / "m.npz").provenance == info
+
+
+def test_shipped_model_loads_and_says_how_it_was_trained():
+    shipped = load_model("default")
+    assert shipped.backbone == "geometric"
+    assert shipped.provenance["mode"] in ("tpe", "grad")
+    assert shipped.provenance["config"]["sequences"] == ["01", "03", "05", "07", "09"]
+    assert np.isfinite(shipped.provenance["train_t_err"])

@@ -1,6 +1,8 @@
 """Odometry: deskew conventions, frame-to-model accuracy, degeneracy, bad scans, `gloam run`."""
 
+import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -160,3 +162,18 @@ def test_gloam_run_writes_the_run_folder(sim_sequence, tmp_path):
     assert load_config(run / "config.yaml") == OdometryConfig()
     missing = CliRunner().invoke(app, ["run", str(tmp_path / "nowhere")])
     assert missing.exit_code == 2 and "nowhere" in missing.output
+
+
+def test_every_shipped_config_loads():
+    from gloam_jax.training.config import TrainConfig
+
+    root = Path(__file__).resolve().parents[1] / "configs"
+    for path in sorted(root.glob("*.yaml")):
+        cls = TrainConfig if path.name.startswith("train_") else OdometryConfig
+        config = load_config(path, cls)
+        assert isinstance(config, cls), path
+    grad = load_config(root / "train_grad.yaml", TrainConfig)
+    assert grad.mode == "grad" and grad.sequences == ("01", "03", "05", "07", "09")
+    # Both modes train on the same problem: only the mode differs.
+    tpe = load_config(root / "train_tpe.yaml", TrainConfig)
+    assert dataclasses.replace(tpe, mode="grad") == grad

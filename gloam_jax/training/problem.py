@@ -212,6 +212,9 @@ def plot_histories(
         ax.plot(wall, value, marker="." if len(wall) < 60 else None, label=label)
     ax.set_xlabel("wall time (s)")
     ax.set_ylabel("training t_err (%)")
+    # Bad trials (TPE explores) reach many times the start: keep the scale on the progress.
+    start = min(v[0] for _, v in curves.values() if v)
+    ax.set_ylim(0.0, 2.0 * start)
     ax.set_title(title)
     ax.grid(alpha=0.3)
     ax.legend()

@@ -1,0 +1,104 @@
+"""Batch registration: recovered motions, agreement with one-at-a-time, loss and errors."""
+
+import dataclasses
+
+import jax
+import numpy as np
+import pytest
+
+from gloam_jax import batch, io
+from gloam_jax.errors import InputError
+from gloam_jax.models import Learned
+from gloam_jax.odometry import OdometryConfig
+
+ODOMETRY = OdometryConfig(downsampling_resolution=0.5)
+CONFIG = batch.BatchConfig(rounds=3, max_source_points=400, segment_fractions=(0.3, 0.6))
+
+
+@pytest.fixture(scope="module")
+def data(sim_sequence):
+    return batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=12)
+
+
+def test_shapes(data):
+    B, P, K = data.pairs.candidates.shape
+    assert (B, P, K) == (11, 400, 5)
+    S, Q, _ = data.scans.points.shape
+    assert S == 12 and Q >= int(np.max(np.sum(np.asarray(data.scans.mask), axis=1)))
+    assert data.scans.pca.shape == (12, Q, 0)  # no model: no features
+    assert data.windows[0].start == 0 and data.windows[0].stop == 11
+
+
+def test_batch_recovers_ground_truth_motion(data, sim_sequence):
+    T_rel = np.asarray(jax.jit(batch.register_pairs, static_argnums=3)(
+        Learned(), data.scans, data.pairs, CONFIG))  # fmt: skip
+    gt = io.KittiSequence(sim_sequence, "00").gt_poses_lidar[:12]
+    rel_gt = np.linalg.inv(gt[:-1]) @ gt[1:]
+    err = np.linalg.inv(rel_gt) @ T_rel
+    dt = np.linalg.norm(err[:, :3, 3], axis=1)
+    dr = np.rad2deg(np.arccos(np.clip((np.trace(err[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    # Pair 0 starts from the identity, the others from the previous ground-truth motion.
+    init = np.linalg.inv(rel_gt[0]) @ np.asarray(data.pairs.T_init[0])
+    assert np.linalg.norm(init[:3, 3]) > 0.5
+    assert np.median(dt) < 0.03 and dt.max() < 0.05, dt
+    assert dr.max() < 0.3, dr
+
+
+def test_vmap_matches_one_at_a_time(data):
+    T_batch = np.asarray(batch.Evaluator(data, CONFIG)(Learned()).T_rel)
+    one = jax.jit(batch.register_pair, static_argnums=3)
+    for b in (0, 5, 10):
+        pair = jax.tree_util.tree_map(lambda x, b=b: x[b], data.pairs)
+        np.testing.assert_allclose(
+            np.asarray(one(Learned(), data.scans, pair, CONFIG)), T_batch[b], atol=2e-5
+        )
+
+
+def test_evaluator_errors_match_the_loss(data):
+    """Evaluator, loss and the chained trajectory scored by training.losses agree."""
+    from gloam_jax.training.losses import relative_translation_error
+
+    result = batch.Evaluator(data, CONFIG)(Learned())
+    loss = float(jax.jit(lambda: batch.loss(Learned(), data, CONFIG))())
+    assert loss == pytest.approx(float(np.mean(result.t_err)), rel=1e-5)
+    w = data.windows[0]
+    est = batch.trajectories(jax.numpy.asarray(result.T_rel), data.windows)[0]
+    assert est.shape == (12, 4, 4)
+    np.testing.assert_allclose(np.asarray(est[0]), np.eye(4), atol=1e-6)
+    direct = float(relative_translation_error(est, w.gt_cam.astype(np.float32), w.plan))
+    assert direct == pytest.approx(float(result.t_err[0]), rel=1e-4)
+    assert 0 < result.t_err[0] < 0.05 and np.isfinite(result.r_err[0])
+
+
+def test_window_cache_round_trip(sim_sequence, tmp_path, data):
+    cached = batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=12,
+                                cache_dir=tmp_path)  # fmt: skip
+    assert len(list(tmp_path.glob("window_00_*.npz"))) == 1
+    again = batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=12,
+                               cache_dir=tmp_path)  # fmt: skip
+    leaves = [jax.tree_util.tree_leaves((d.scans, d.pairs)) for d in (data, cached, again)]
+    for a, b, c in zip(*leaves, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+        np.testing.assert_array_equal(np.asarray(b), np.asarray(c))
+
+
+def test_bad_input(sim_sequence, tmp_path):
+    with pytest.raises(InputError, match="at least 2 scans"):
+        batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=1)
+    with pytest.raises(InputError, match="backbone"):
+        from gloam_jax.models import init_model
+
+        batch.prepare_window(io.KittiSequence(sim_sequence, "00"), range(3), ODOMETRY, CONFIG,
+                             model=init_model(jax.random.PRNGKey(0), _pca()))  # fmt: skip
+    with pytest.raises(InputError, match="inner_steps"):
+        dataclasses.replace(CONFIG, inner_steps=1)
+    # A sequence without ground truth cannot be trained or scored on.
+    (tmp_path / "sequences").symlink_to(sim_sequence / "sequences")
+    with pytest.raises(InputError, match="ground truth"):
+        batch.load_windows(tmp_path, ["00"], ODOMETRY, CONFIG, frames=3)
+
+
+def _pca():
+    from gloam_jax.features import fit_pca
+
+    return fit_pca(np.random.default_rng(0).normal(size=(50, 20)))

@@ -1,0 +1,155 @@
+"""Training: gradients through GICP against finite differences (both adjoints), the TPE and
+gradient drivers on tiny data, resume after interruption, the command line."""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from gloam_jax import batch
+from gloam_jax.cli import app
+from gloam_jax.config import dump_config
+from gloam_jax.features import get_backbone
+from gloam_jax.models import load_model
+from gloam_jax.odometry import OdometryConfig
+from gloam_jax.training.config import GradConfig, TPEConfig, TrainConfig
+from gloam_jax.training.grad import train_grad
+from gloam_jax.training.problem import Params, fit_initial_model, setup
+from gloam_jax.training.tpe import train_tpe
+
+TINY = batch.BatchConfig(
+    rounds=2, max_source_points=200, association="soft", segment_fractions=(0.3, 0.6),
+    segment_step=2,
+)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def model(sim_sequence):
+    return fit_initial_model(sim_sequence, ["00"], get_backbone("geometric"), every=10,
+                             init="gicp")  # fmt: skip
+
+
+@pytest.mark.parametrize("adjoint", ["unrolled", "implicit"])
+def test_gradient_matches_finite_differences(sim_sequence, model, adjoint):
+    """d(loss)/d(weights) of the trajectory error through the LM solves, float64, along
+    random directions in weight space, against central differences."""
+    jax.config.update("jax_enable_x64", True)
+    try:
+        # Implicit differentiation assumes converged solves: give LM enough steps.
+        inner = 3 if adjoint == "unrolled" else 12
+        config = dataclasses.replace(TINY, adjoint=adjoint, inner_steps=inner, temperature=0.2)
+        backbone = get_backbone(model.backbone, **model.backbone_options)
+        data = batch.load_windows(sim_sequence, ["00"], OdometryConfig(), config, model,
+                                  backbone, frames=5)  # fmt: skip
+        f64 = lambda tree: jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), tree)  # noqa: E731
+        params = f64(Params(model.conversion, model.eigenvalue))
+
+        def loss(p):
+            learned = batch.Learned(p.conversion, p.eigenvalue, model.eps)
+            return batch.loss(learned, data, config)
+
+        value, grad = jax.jit(jax.value_and_grad(loss))(params)
+        assert np.isfinite(float(value)) and float(value) > 0
+        flat_g, unravel = jax.flatten_util.ravel_pytree(grad)
+        flat_p, _ = jax.flatten_util.ravel_pytree(params)
+        assert np.all(np.isfinite(flat_g)) and np.linalg.norm(flat_g) > 0
+        fl = jax.jit(lambda x: loss(unravel(x)))
+        rng = np.random.default_rng(0)
+        h = 1e-5
+        for _ in range(3):
+            v = rng.normal(size=flat_p.shape)
+            v /= np.linalg.norm(v)
+            fd = (float(fl(flat_p + h * v)) - float(fl(flat_p - h * v))) / (2 * h)
+            ad = float(flat_g @ v)
+            assert ad == pytest.approx(fd, rel=2e-3, abs=1e-7), (adjoint, ad, fd)
+    finally:
+        jax.config.update("jax_enable_x64", False)
+
+
+def _config(sim_sequence, tmp_path, model, **kw) -> TrainConfig:
+    from gloam_jax.models import save_model
+
+    save_model(tmp_path / "start.npz", model)
+    return TrainConfig(
+        data=str(sim_sequence),
+        sequences=("00",),
+        frames=6,
+        init_model=str(tmp_path / "start.npz"),
+        batch=dataclasses.replace(TINY, adjoint="implicit"),
+        **kw,
+    )
+
+
+class Interrupt(Exception):
+    pass
+
+
+def _interrupt_after(n):
+    def progress(done, total, best):
+        if done == n:
+            raise Interrupt
+
+    return progress
+
+
+def test_tpe_runs_resumes_and_exports(sim_sequence, tmp_path, model):
+    cfg = _config(sim_sequence, tmp_path, model, mode="tpe", tpe=TPEConfig(n_trials=3))
+    run = tmp_path / "tpe"
+    cache = tmp_path / "cache"
+    with pytest.raises(Interrupt):
+        train_tpe(setup(cfg, run, cache_dir=cache), _interrupt_after(2))
+    history = json.loads((run / "history.json").read_text())
+    assert len(history) == 2
+    trained = train_tpe(setup(cfg, run, cache_dir=cache))  # resumes: one more trial
+    history = json.loads((run / "history.json").read_text())
+    assert [h["trial"] for h in history] == [0, 1, 2]
+    assert all(np.isfinite(h["t_err"]) for h in history)
+    assert history[-1]["best_t_err"] == min(h["t_err"] for h in history)
+    # Trial 0 is the start model itself.
+    problem = setup(cfg, run, cache_dir=cache)
+    assert history[0]["t_err"] == pytest.approx(problem.training_loss(problem.init_params)[0])
+    loaded = load_model(run / "model.npz")
+    assert loaded.provenance["mode"] == "tpe"
+    assert loaded.provenance["train_t_err"] == pytest.approx(history[-1]["best_t_err"])
+    got = problem.training_loss(Params(loaded.conversion, loaded.eigenvalue))[0]
+    assert got == pytest.approx(history[-1]["best_t_err"], rel=1e-5)
+    assert trained.provenance["trials"] == 3 and (run / "loss_curve.png").stat().st_size > 0
+
+
+def test_grad_runs_and_resumes_to_the_same_weights(sim_sequence, tmp_path, model):
+    cfg = _config(sim_sequence, tmp_path, model, mode="grad",
+                  grad=GradConfig(steps=2, eval_every=1, learning_rate=0.01))  # fmt: skip
+    cache = tmp_path / "cache"
+    straight = train_grad(setup(cfg, tmp_path / "a", cache_dir=cache))
+    with pytest.raises(Interrupt):
+        train_grad(setup(cfg, tmp_path / "b", cache_dir=cache), _interrupt_after(1))
+    assert (tmp_path / "b" / "checkpoint.npz").is_file()
+    resumed = train_grad(setup(cfg, tmp_path / "b", cache_dir=cache))
+    for a, b in zip(jax.tree_util.tree_leaves((straight.conversion, straight.eigenvalue)),
+                    jax.tree_util.tree_leaves((resumed.conversion, resumed.eigenvalue)),
+                    strict=True):  # fmt: skip
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-5, atol=1e-7)
+    history = json.loads((tmp_path / "b" / "history.json").read_text())
+    assert [h["step"] for h in history] == [0, 1, 2]
+    assert all(np.isfinite(h["t_err"]) for h in history)
+    assert np.isfinite(history[-1]["soft_loss"])
+    assert load_model(tmp_path / "b" / "model.npz").provenance["steps"] == 2
+
+
+def test_cli_train_and_a_changed_config(sim_sequence, tmp_path, model):
+    cfg = _config(sim_sequence, tmp_path, model, mode="grad", grad=GradConfig(steps=1))
+    dump_config(cfg, tmp_path / "train.yaml")
+    runner = CliRunner()
+    args = ["train", "--config", str(tmp_path / "train.yaml"), "--out", str(tmp_path / "run")]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "run" / "model.npz").is_file()
+    result = runner.invoke(app, [*args, "--mode", "tpe"])
+    assert result.exit_code == 2
+    assert "other settings (mode)" in result.output
+    result = runner.invoke(app, ["train", "--config", str(tmp_path / "missing.yaml")])
+    assert result.exit_code == 2 and "file not found" in result.output
