@@ -72,6 +72,18 @@ def _progress() -> Progress:
     )
 
 
+class _Tasks:
+    """A progress callback ``(what, done, total)`` that gives each ``what`` its own bar."""
+
+    def __init__(self, bar: Progress) -> None:
+        self.bar, self.ids = bar, {}
+
+    def __call__(self, what: str, done: int, total: int, rate: str = "") -> None:
+        if what not in self.ids:
+            self.ids[what] = self.bar.add_task(what, total=total, rate="")
+        self.bar.update(self.ids[what], completed=done, rate=rate)
+
+
 def _run_simulation(out: Path, frames: int, **kwargs) -> tuple[Path, float]:
     from gloam_jax.simulate import simulate as run_simulate
 
@@ -341,12 +353,7 @@ def init_model(
         else get_backbone(backbone)
     )
     with _progress() as bar:
-        tasks: dict[str, int] = {}
-
-        def step(what: str, done: int, total: int) -> None:
-            if what not in tasks:
-                tasks[what] = bar.add_task(what, total=total, rate="")
-            bar.update(tasks[what], completed=done)
+        step = _Tasks(bar)
 
         model = fit_initial_model(
             data,
@@ -415,19 +422,13 @@ def train(
     grad = {k: v for k, v in grad.items() if v is not None}
     cfg = dataclasses.replace(cfg, grad=dataclasses.replace(cfg.grad, **grad))
     with _progress() as bar:
-        tasks: dict[str, int] = {}
-
-        def step(what: str, done: int, total: int) -> None:
-            if what not in tasks:
-                tasks[what] = bar.add_task(what, total=total, rate="")
-            bar.update(tasks[what], completed=done)
+        step = _Tasks(bar)
 
         problem = setup(cfg, out, cache_dir=cache, progress=step)
         label = "TPE trials" if cfg.mode == "tpe" else "gradient steps"
 
         def tick(done: int, total: int, best: float) -> None:
-            step(label, done, total)
-            bar.update(tasks[label], rate=f"best t_err {100 * best:.3f} %")
+            step(label, done, total, rate=f"best t_err {100 * best:.3f} %")
 
         if cfg.mode == "tpe":
             from gloam_jax.training.tpe import train_tpe

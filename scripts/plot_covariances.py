@@ -9,9 +9,9 @@ fitted on this scan), labelled as such. Each ellipsoid is scaled so that its lon
 semi-axis has the same length: the panels compare shapes, not sizes (the three
 regularisers live on different scales). Colour: red = line, green = plane, blue = sphere.
 
-docs/img/covariances.png is frame 0 of a simulated drive along KITTI 07 (``gloam simulate
-data/sim --trajectory ../shared/data/kitti_gt_poses/07.txt --frames 300 --sequence 07``),
-with the defaults and no model.
+docs/img/covariances.png is frame 0 of the protocol's KITTI 00 window
+(``scripts/simulate_protocol.py``) with the shipped model
+(``--model gloam_jax/data/gloam_default.npz``) and the other defaults.
 """
 
 from __future__ import annotations
