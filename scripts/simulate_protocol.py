@@ -2,6 +2,9 @@
 layout, along the real ground-truth trajectories (see gloam_jax.training.protocol).
 
     python scripts/simulate_protocol.py --out data/protocol [--frames 120] [--sequences 01,03]
+    python scripts/simulate_protocol.py --out data/protocol --sequences 31,33,35,37,39
+
+Ids 31-39 are second windows of the training sequences (EXTRA_TRAINING_WINDOWS).
 
 Resumable: a sequence already complete is skipped, an interrupted one continues.
 """
@@ -13,7 +16,13 @@ import time
 from pathlib import Path
 
 from gloam_jax.simulate import simulate
-from gloam_jax.training.protocol import DEFAULT_FRAMES, TEST_SEQUENCES, TRAIN_SEQUENCES, WINDOWS
+from gloam_jax.training.protocol import (
+    DEFAULT_FRAMES,
+    EXTRA_TRAINING_WINDOWS,
+    TEST_SEQUENCES,
+    TRAIN_SEQUENCES,
+    WINDOWS,
+)
 
 POSES = Path(__file__).resolve().parents[2] / "shared/data/kitti_gt_poses"
 
@@ -27,11 +36,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
     for name in args.sequences.split(","):
-        window = WINDOWS[name]
+        kitti, window = EXTRA_TRAINING_WINDOWS.get(name, (name, WINDOWS.get(name)))
+        if window is None:
+            raise SystemExit(f"no protocol window for sequence {name!r}")
         t0 = time.perf_counter()
         simulate(
             args.out,
-            trajectory=args.poses / f"{name}.txt",
+            trajectory=args.poses / f"{kitti}.txt",
             start=window.start,
             frames=args.frames,
             style=window.style,

@@ -198,5 +198,10 @@ def test_shipped_model_loads_and_says_how_it_was_trained():
     shipped = load_model("default")
     assert shipped.backbone == "geometric"
     assert shipped.provenance["mode"] in ("tpe", "grad")
-    assert shipped.provenance["config"]["sequences"] == ["01", "03", "05", "07", "09"]
+    # Trained on windows of the training trajectories only (3N: a second window of 0N).
+    from gloam_jax.training.protocol import EXTRA_TRAINING_WINDOWS, TRAIN_SEQUENCES
+
+    used = shipped.provenance["config"]["sequences"]
+    assert set(TRAIN_SEQUENCES) <= set(used) <= set(TRAIN_SEQUENCES) | set(EXTRA_TRAINING_WINDOWS)
+    assert all(EXTRA_TRAINING_WINDOWS[s][0] in TRAIN_SEQUENCES for s in EXTRA_TRAINING_WINDOWS)
     assert np.isfinite(shipped.provenance["train_t_err"])

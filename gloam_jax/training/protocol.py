@@ -36,3 +36,13 @@ WINDOWS: dict[str, Window] = {
     "10": Window("suburban", 100),
 }
 DEFAULT_FRAMES = 120
+
+# Second training windows of the training sequences, under ids KITTI does not use (3N is a
+# second window of 0N): more training data, still only from the training trajectories.
+EXTRA_TRAINING_WINDOWS: dict[str, tuple[str, Window]] = {
+    "31": ("01", Window("highway", 600)),
+    "33": ("03", Window("suburban", 500)),
+    "35": ("05", Window("suburban", 1500)),
+    "37": ("07", Window("urban", 800)),
+    "39": ("09", Window("suburban", 800)),
+}

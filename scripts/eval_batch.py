@@ -1,0 +1,66 @@
+"""Models scored on the training problem itself: batched frame-to-frame registrations.
+
+    python scripts/eval_batch.py --config configs/train_tpe.yaml --sequences 00,02,04 \\
+        --model tpe=runs/tpe/model.npz --model grad=runs/grad/model.npz --out batch_eval.json
+
+Prepares the windows as the config's training does (same preprocessing, candidate sets and
+registrations, with the PCA of the first model) and prints each model's t_err (%) per window,
+with hard association, next to plain GICP's. Tells whether what training learned carries over
+to windows it did not see, before any odometry is involved.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from gloam_jax import batch
+from gloam_jax.config import load_config
+from gloam_jax.features import get_backbone
+from gloam_jax.io import write_atomic
+from gloam_jax.models import Learned, learned_parts, load_model
+from gloam_jax.training.config import TrainConfig
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--config", type=Path, default=Path("configs/train_tpe.yaml"))
+    parser.add_argument("--sequences", required=True, help="comma-separated ids")
+    parser.add_argument("--model", action="append", required=True, help="LABEL=FILE")
+    parser.add_argument("--method", default="gloam")
+    parser.add_argument("--cache", type=Path, default=Path("runs/cache"))
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    cfg = load_config(args.config, TrainConfig)
+    config = dataclasses.replace(cfg.batch, association="hard")
+    models = dict(m.split("=", 1) for m in args.model)
+    loaded = {label: load_model(path) for label, path in models.items()}
+    first = next(iter(loaded.values()))
+    for label, model in loaded.items():
+        if not all(np.array_equal(a, b) for a, b in zip(model.pca, first.pca, strict=True)):
+            raise SystemExit(f"{label}: its PCA differs from the first model's")
+    backbone = get_backbone(first.backbone, **first.backbone_options)
+    sequences = args.sequences.split(",")
+    data = batch.load_windows(cfg.data, sequences, cfg.odometry, config, first, backbone,
+                              frames=cfg.frames, cache_dir=args.cache)  # fmt: skip
+    evaluate = batch.Evaluator(data, config)
+    rows = {"GICP": evaluate(Learned())}
+    rows |= {label: evaluate(learned_parts(m, args.method)) for label, m in loaded.items()}
+    print("| method | " + " | ".join(sequences) + " | mean |")
+    print("|" + "---|" * (len(sequences) + 2))
+    result = {}
+    for label, r in rows.items():
+        t = 100 * r.t_err
+        result[label] = {"t_err": dict(zip(sequences, t.tolist(), strict=True)),
+                         "mean": float(t.mean())}  # fmt: skip
+        print(f"| {label} | " + " | ".join(f"{x:.2f}" for x in t) + f" | {t.mean():.2f} |")
+    if args.out is not None:
+        write_atomic(args.out, json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
