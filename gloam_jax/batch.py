@@ -179,7 +179,8 @@ def prepare_window(
 
     Scans are deskewed with the ground truth's velocity (so training sees clean sweeps, as an
     odometry with a good velocity estimate does); each pair's initial guess is the previous
-    interval's ground-truth motion (constant velocity), its candidates found at that guess.
+    interval's ground-truth motion (constant velocity; the identity for the first pair), its
+    candidates found at that guess.
     """
     gt_cam = seq.gt_poses_cam
     if gt_cam is None:
@@ -212,7 +213,10 @@ def prepare_window(
         c, v = KdTree(target, str(seq.scan_path(frames[k]))).query(
             moved, config.num_candidates, config.candidate_radius
         )
-        rows.append(sub), cands.append(c), valids.append(v), T_init.append(T0)
+        rows.append(sub)
+        cands.append(c)
+        valids.append(v)
+        T_init.append(T0)
     return {
         "name": seq.sequence,
         "scans": scans,
