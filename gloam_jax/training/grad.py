@@ -102,9 +102,10 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
         grads = jax.tree_util.tree_map(lambda g: jnp.where(ok, g, 0.0), grads)
         updates, new_s = optimizer.update(grads, s, p)
         new_p = optax.apply_updates(p, updates)
-        keep = lambda new, old: jax.tree_util.tree_map(  # noqa: E731
-            lambda a, b: jnp.where(ok, a, b), new, old
-        )
+
+        def keep(new, old):  # a skipped step leaves weights and Adam's moments as they were
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, old)
+
         return keep(new_p, p), keep(new_s, s), value, ok
 
     def evaluate(p: Params, at: int, soft: float | None) -> None:
