@@ -20,7 +20,6 @@ import json
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from functools import partial
-from io import BytesIO
 from pathlib import Path
 from typing import Literal, NamedTuple
 
@@ -158,11 +157,10 @@ def _prepare_scan(seq, i, odometry, model, backbone, velocity, frame_dt):
     return points, np.asarray(values)[:n], np.asarray(vectors)[:n], pca
 
 
-def _gt_velocities(gt_lidar: np.ndarray) -> np.ndarray:
-    """se(3) motion per frame interval (n, 6) from ground-truth LiDAR poses; frame 0 takes
-    frame 1's."""
-    rel = np.linalg.inv(gt_lidar[:-1]) @ gt_lidar[1:]
-    xi = np.asarray(geo.se3_log_jit(rel), np.float64)
+def _velocities(rel_gt: np.ndarray) -> np.ndarray:
+    """se(3) motion per frame (n, 6) from the (n - 1, 4, 4) ground-truth frame-to-frame
+    motions; frame 0 takes frame 1's."""
+    xi = np.asarray(geo.se3_log_jit(rel_gt), np.float64)
     return np.concatenate([xi[:1], xi])
 
 
@@ -191,7 +189,8 @@ def prepare_window(
     if model is not None and backbone is None:
         raise InputError(None, "a model needs the backbone that makes its features")
     gt_lidar = seq.gt_poses_lidar[frames.start : frames.stop]
-    velocity = _gt_velocities(gt_lidar)
+    rel_gt = np.linalg.inv(gt_lidar[:-1]) @ gt_lidar[1:]
+    velocity = _velocities(rel_gt)
     times = seq.times
     scans = []
     for k, i in enumerate(frames):
@@ -201,7 +200,6 @@ def prepare_window(
             progress(k)
     rng = np.random.default_rng(config.seed)
     rows, cands, valids, T_init = [], [], [], []
-    rel_gt = np.linalg.inv(gt_lidar[:-1]) @ gt_lidar[1:]
     for k in range(len(frames) - 1):
         target, source = scans[k][0], scans[k + 1][0]
         n = len(source)
@@ -257,9 +255,7 @@ def _save_window(path: Path, w: dict) -> None:
         arrays[f"pair{k}_rows"] = w["rows"][k]
         arrays[f"pair{k}_candidates"] = w["candidates"][k]
         arrays[f"pair{k}_valid"] = w["valid"][k]
-    buffer = BytesIO()
-    np.savez(buffer, name=np.array(w["name"]), **arrays)
-    io.write_atomic(path, buffer.getvalue())
+    io.write_npz(path, name=np.array(w["name"]), **arrays)
 
 
 def _load_window(path: Path) -> dict:

@@ -116,6 +116,13 @@ def write_atomic(path: PathLike, data: bytes | str) -> None:
         raise
 
 
+def write_npz(path: PathLike, **arrays: np.ndarray) -> None:
+    """Save arrays as one uncompressed ``.npz``, atomically (see :func:`write_atomic`)."""
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    write_atomic(path, buffer.getvalue())
+
+
 def write_figure(path: PathLike, fig, dpi: int = 110, **savefig_kwargs) -> Path:
     """Save a matplotlib figure as PNG, atomically (see :func:`write_atomic`)."""
     buffer = io.BytesIO()

@@ -19,7 +19,6 @@ entry), :func:`load_model` reads and checks it.
 from __future__ import annotations
 
 import dataclasses
-import io
 import json
 import os
 import zipfile
@@ -34,7 +33,7 @@ from jax import Array
 
 from gloam_jax.errors import InputError
 from gloam_jax.features.pca import FeaturePCA
-from gloam_jax.io import write_atomic
+from gloam_jax.io import write_npz
 
 MODEL_FORMAT = "gloam-jax-model"
 MODEL_VERSION = 1
@@ -211,10 +210,8 @@ def save_model(path: str | os.PathLike[str], model: GLOAMModel) -> None:
         "backbone_options": model.backbone_options,
         "provenance": model.provenance,
     }
-    buffer = io.BytesIO()
     # A 0-d unicode array, not a pickled object: the file loads with allow_pickle=False.
-    np.savez(buffer, metadata=np.array(json.dumps(metadata)), **_arrays(model))
-    write_atomic(path, buffer.getvalue())
+    write_npz(path, metadata=np.array(json.dumps(metadata)), **_arrays(model))
 
 
 def _expected_shapes(d: int) -> dict[str, tuple[int, ...]]:

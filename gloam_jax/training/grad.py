@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from io import BytesIO
 
 import jax
 import jax.numpy as jnp
@@ -39,9 +38,7 @@ def save_checkpoint(path, trees: dict, meta: dict) -> None:
     for name, tree in trees.items():
         for i, leaf in enumerate(jax.tree_util.tree_leaves(tree)):
             arrays[f"{name}_{i}"] = np.asarray(leaf)
-    buffer = BytesIO()
-    np.savez(buffer, meta=np.array(json.dumps(meta)), **arrays)
-    io.write_atomic(path, buffer.getvalue())
+    io.write_npz(path, meta=np.array(json.dumps(meta)), **arrays)
 
 
 def load_checkpoint(path, templates: dict) -> tuple[dict, dict]:
