@@ -241,14 +241,17 @@ def _cache_dir() -> Path:
 
 
 def _run_dir(out: Path) -> Path:
-    """A new timestamped folder under ``out``, with ``out/latest`` pointing at it."""
-    run_dir = out / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-    run_dir.mkdir(parents=True, exist_ok=True)
-    latest = out / "latest"
+    """A new timestamped folder's path under ``out``; the run creates it as it writes, so
+    one that fails on bad input leaves nothing behind."""
+    return out / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+
+
+def _mark_latest(run_dir: Path) -> None:
+    """Point ``out/latest`` at a finished run."""
+    latest = run_dir.parent / "latest"
     if latest.is_symlink() or latest.exists():
         latest.unlink()
     latest.symlink_to(run_dir.name)
-    return run_dir
 
 
 def _run_odometry(
@@ -320,7 +323,9 @@ def run(
     settings = load_config(config)
     if weights is not None:
         settings = dataclasses.replace(settings, model=str(weights))
-    _run_odometry(data, sequence, settings, frames, _run_dir(out), features)
+    run_dir = _run_dir(out)
+    _run_odometry(data, sequence, settings, frames, run_dir, features)
+    _mark_latest(run_dir)
 
 
 @app.command(
@@ -477,6 +482,7 @@ def demo(
     results = {
         c.method: _run_odometry(data, "00", c, None, run_dir / c.method) for c in (gicp, gloam)
     }
+    _mark_latest(run_dir)
     table = Table(title="GICP vs Generalized LOAM on the demo drive")
     for column in ("method", "t_err (%)", "r_err (deg/100 m)", "ATE rmse (m)", "ms/frame"):
         table.add_column(column, justify="right")

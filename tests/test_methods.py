@@ -124,9 +124,11 @@ def test_init_model_then_run_gloam_from_the_command_line(sim_sequence, tmp_path)
     no_model = tmp_path / "no_model.yaml"
     no_model.write_text("method: gloam\nmodel: null\n")
     missing = runner.invoke(
-        app, ["run", str(sim_sequence), "--config", str(no_model), "--frames", "3"]
-    )
+        app, ["run", str(sim_sequence), "--config", str(no_model), "--frames", "3",
+              "--out", str(tmp_path / "failed")],
+    )  # fmt: skip
     assert missing.exit_code == 2 and "needs a model file" in missing.output
+    assert not (tmp_path / "failed").exists()
 
 
 def test_saved_model_runs_identically(tmp_path, sim_sequence, model):

@@ -160,8 +160,11 @@ def test_gloam_run_writes_the_run_folder(sim_sequence, tmp_path):
     assert "rte_unavailable" in metrics and metrics["ate"]["rmse"] < 0.2
     assert metrics["num_frames"] == 8 and metrics["median_ms_per_frame"] > 0
     assert load_config(run / "config.yaml") == OdometryConfig()
-    missing = CliRunner().invoke(app, ["run", str(tmp_path / "nowhere")])
+    # Bad input: one line naming the path, and no run folder left behind.
+    out = tmp_path / "failed"
+    missing = CliRunner().invoke(app, ["run", str(tmp_path / "nowhere"), "--out", str(out)])
     assert missing.exit_code == 2 and "nowhere" in missing.output
+    assert len(missing.output.strip().splitlines()) == 1 and not out.exists()
 
 
 def test_every_shipped_config_loads():
