@@ -55,16 +55,38 @@ def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.nda
     return points[range_mask(points, min_range, max_range)[0]]
 
 
+def _voxel_groups(
+    points: np.ndarray, voxel_size: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points grouped by voxel: an order (N,) that sorts them by voxel key (x, then y, then
+    z), where each voxel's run starts (M,), and the points per voxel (M,)."""
+    # Per-axis 1-D arrays: reductions along the short axis of an (N, 3) array are slow.
+    cells = [np.floor(points[:, i] * (1.0 / voxel_size)) for i in range(3)]
+    if not all(np.isfinite(c).all() for c in cells):
+        raise ValueError("cannot voxelise NaN or infinite points")
+    lows = [c.min() for c in cells]
+    dims = [int(c.max() - lo) + 1 for c, lo in zip(cells, lows, strict=True)]
+    if dims[0] * dims[1] * dims[2] >= 1 << 62:
+        raise ValueError(f"points spanning {dims} voxels of {voxel_size} m cannot be voxelised")
+    x, y, z = ((c - lo).astype(np.int64) for c, lo in zip(cells, lows, strict=True))
+    # One integer per voxel in mixed radix keeps the (x, y, z) order; a stable sort of 32-bit
+    # keys (most scans) is several times faster than np.unique on 64-bit ones.
+    key = (x * dims[1] + y) * dims[2] + z
+    if dims[0] * dims[1] * dims[2] < 1 << 32:
+        key = key.astype(np.uint32)
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    starts = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
+    counts = np.diff(np.r_[starts, len(key)])
+    return order, starts, counts
+
+
 def voxel_index(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
     """Each point's voxel (N,) and the points per voxel (M,), voxels in sorted key order."""
-    # Offsetting by 2^20 voxels before truncating makes truncation a floor; 21 bits per axis
-    # cover +-1e6 voxels, i.e. +-100 km at 0.1 m.
-    keys = (points[:, :3] * (1.0 / voxel_size) + float(1 << 20)).astype(np.int64)
-    if len(keys) and (keys.min() < 0 or keys.max() >= 1 << 21):
-        raise ValueError(f"points beyond +-{(1 << 20) * voxel_size:.0f} m cannot be voxelised")
-    flat = (keys[:, 0] << 42) | (keys[:, 1] << 21) | keys[:, 2]
-    _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    return inverse.ravel(), counts
+    order, _, counts = _voxel_groups(points, voxel_size)
+    inverse = np.empty(len(order), np.int64)
+    inverse[order] = np.repeat(np.arange(len(counts)), counts)
+    return inverse, counts
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -72,11 +94,11 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 
     Output rows follow the voxels' sorted keys, so they are deterministic.
     """
-    if voxel_size <= 0:
+    if voxel_size <= 0 or len(points) == 0:
         return points
-    inverse, counts = voxel_index(points, voxel_size)
-    sums = [np.bincount(inverse, weights=col, minlength=len(counts)) for col in points.T]
-    return (np.stack(sums, axis=1) / counts[:, None]).astype(points.dtype)
+    order, starts, counts = _voxel_groups(points, voxel_size)
+    sums = np.add.reduceat(points[order].astype(np.float64), starts, axis=0)
+    return (sums / counts[:, None]).astype(points.dtype)
 
 
 def bucket_size(n: int, buckets: tuple[int, ...] = BUCKETS) -> int:

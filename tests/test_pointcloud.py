@@ -1,0 +1,62 @@
+"""Host preprocessing: voxel grid, range crop, padding buckets."""
+
+import numpy as np
+import pytest
+
+from gloam_jax import pointcloud as pc
+from gloam_jax.errors import InputError
+
+
+def reference_voxel_means(points: np.ndarray, size: float) -> dict[tuple, np.ndarray]:
+    groups: dict[tuple, list] = {}
+    for p in points:
+        groups.setdefault(tuple(np.floor(p[:3] / size).astype(int)), []).append(p)
+    return {k: np.mean(v, axis=0) for k, v in groups.items()}
+
+
+def test_voxel_downsample_means_in_sorted_key_order():
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-30, 30, (5000, 3)), rng.uniform(0, 1, 5000)])
+    out = pc.voxel_downsample(points, 2.0)
+    ref = reference_voxel_means(points, 2.0)
+    assert out.shape == (len(ref), 4)
+    keys = sorted(ref)  # lexicographic (x, y, z)
+    np.testing.assert_allclose(out, np.stack([ref[k] for k in keys]), atol=1e-12)
+    inverse, counts = pc.voxel_index(points, 2.0)
+    assert counts.sum() == len(points) and len(counts) == len(ref)
+    # Each point's voxel index names the row holding its mean.
+    np.testing.assert_allclose(out[inverse[:10], :3] // 2.0, points[:10, :3] // 2.0)
+
+
+def test_voxel_downsample_far_from_the_origin_and_on_cell_borders():
+    # A large (UTM-like) offset, and points exactly on voxel borders (floor, not truncation).
+    points = np.array([[5e5, -4e6, 10.0], [5e5 + 0.49, -4e6 + 0.2, 10.1], [-0.5, -0.5, 0.0],
+                       [-0.0001, 0.0, 0.0], [0.0, 0.0, 0.0]])  # fmt: skip
+    out = pc.voxel_downsample(points, 0.5)
+    assert len(out) == 4
+    np.testing.assert_allclose(out[0], [-0.5, -0.5, 0.0])
+    np.testing.assert_allclose(out[2], [0.0, 0.0, 0.0])
+    np.testing.assert_allclose(out[3], [5e5 + 0.245, -4e6 + 0.1, 10.05])
+
+
+def test_voxel_downsample_rejects_bad_points_and_passes_through_size_zero():
+    points = np.random.default_rng(1).normal(size=(10, 3))
+    np.testing.assert_array_equal(pc.voxel_downsample(points, 0.0), points)
+    with pytest.raises(ValueError, match="NaN"):
+        pc.voxel_downsample(np.vstack([points, [np.nan, 0, 0]]), 0.5)
+    with pytest.raises(ValueError, match="cannot be voxelised"):
+        pc.voxel_downsample(np.array([[-1e12, -1e12, -1e12], [1e12, 1e12, 1e12]]), 0.01)
+
+
+def test_range_mask_and_buckets():
+    scan = np.array([[1.0, 0, 0], [5.0, 0, 0], [np.nan, 0, 0], [200.0, 0, 0]])
+    keep, invalid = pc.range_mask(scan, 3.0, 100.0)
+    assert keep.tolist() == [False, True, False, False] and invalid == 1
+    with pytest.raises(InputError, match="NaN or infinite"):
+        pc.range_mask(np.full((3, 3), np.inf), 3.0, 100.0)
+    assert pc.bucket_size(1000) == 1024 and pc.bucket_size(1025) == 1280
+    sticky = pc.StickyBuckets()
+    assert sticky("source", 1000) == pc.bucket_size(1200)
+    assert sticky("source", 500) == pc.bucket_size(1200)  # never shrinks
+    padded, mask = pc.pad(np.ones((3, 2)), 5)
+    assert padded.shape == (5, 2) and mask.tolist() == [True] * 3 + [False] * 2
