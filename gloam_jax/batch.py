@@ -64,12 +64,21 @@ class BatchConfig:
     segment_fractions: tuple[float, ...] = TRAINING_FRACTIONS  # of each window's path
     segment_step: int = 10  # frames between segment starts (the devkit's)
     seed: int = 0  # source subsets
+    # The target of pair k: scan k alone (map_scans 1, frame-to-frame, as the paper trains),
+    # or a local map of scans k, k - map_stride, ... (map_scans of them) merged with the
+    # ground-truth poses, as the odometry registers to its last keyframes.
+    map_scans: int = 1
+    map_stride: int = 2
 
     def __post_init__(self) -> None:
         if self.inner_steps < 2:  # optimistix's LM spends its first step initialising
             raise InputError(None, f"inner_steps must be at least 2, not {self.inner_steps}")
-        if self.rounds < 1 or self.num_candidates < 1 or self.max_source_points < 1:
-            raise InputError(None, "rounds, num_candidates and max_source_points must be >= 1")
+        if min(self.rounds, self.num_candidates, self.max_source_points, self.map_scans,
+               self.map_stride) < 1:  # fmt: skip
+            raise InputError(
+                None, "rounds, num_candidates, max_source_points, map_scans and map_stride "
+                "must be >= 1"
+            )
         object.__setattr__(self, "segment_fractions", tuple(self.segment_fractions))
 
 
@@ -87,14 +96,18 @@ class ScanSet(NamedTuple):
 
 class PairSet(NamedTuple):
     """B registrations: scan indices ``target``, ``source`` (B,); source rows (B, P) with
-    ``row_mask``; candidate target rows (B, P, K) with ``valid``; ``T_init`` (B, 4, 4)."""
+    ``row_mask``; candidates (B, P, K) with ``valid``, as rows of the flattened scans (S * Q)
+    and the slot of the local map each comes from; the map's poses in the target's frame
+    ``T_target_map`` (B, M, 4, 4) (M = 1, the identity, frame-to-frame); ``T_init`` (B, 4, 4)."""
 
     target: Array
     source: Array
     rows: Array
     row_mask: Array
     candidates: Array
+    slots: Array
     valid: Array
+    T_target_map: Array
     T_init: Array
 
 
@@ -164,21 +177,18 @@ def _velocities(rel_gt: np.ndarray) -> np.ndarray:
     return np.concatenate([xi[:1], xi])
 
 
-def prepare_window(
+def prepare_scans(
     seq: io.KittiSequence,
     frames: range,
     odometry: OdometryConfig,
-    config: BatchConfig,
     model: GLOAMModel | None = None,
     backbone: Backbone | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> dict[str, np.ndarray]:
-    """Prepared scans and pairs of one window of ``seq`` as host arrays (see :func:`stack`).
+    """Prepared scans of one window of ``seq`` and its ground truth, as host arrays.
 
-    Scans are deskewed with the ground truth's velocity (so training sees clean sweeps, as an
-    odometry with a good velocity estimate does); each pair's initial guess is the previous
-    interval's ground-truth motion (constant velocity; the identity for the first pair), its
-    candidates found at that guess.
+    Scans are deskewed with the ground truth's velocity, so training sees clean sweeps, as an
+    odometry with a good velocity estimate does.
     """
     gt_cam = seq.gt_poses_cam
     if gt_cam is None:
@@ -188,9 +198,7 @@ def prepare_window(
         raise InputError(seq.sequence_dir, f"need at least 2 scans, have {len(frames)}")
     if model is not None and backbone is None:
         raise InputError(None, "a model needs the backbone that makes its features")
-    gt_lidar = seq.gt_poses_lidar[frames.start : frames.stop]
-    rel_gt = np.linalg.inv(gt_lidar[:-1]) @ gt_lidar[1:]
-    velocity = _velocities(rel_gt)
+    velocity = _velocities(_relative_motions(gt_cam[frames.start : frames.stop], seq.Tr_cam_velo))
     times = seq.times
     scans = []
     for k, i in enumerate(frames):
@@ -198,80 +206,138 @@ def prepare_window(
         scans.append(_prepare_scan(seq, i, odometry, model, backbone, velocity[k], dt))
         if progress is not None:
             progress(k)
-    rng = np.random.default_rng(config.seed)
-    rows, cands, valids, T_init = [], [], [], []
-    for k in range(len(frames) - 1):
-        target, source = scans[k][0], scans[k + 1][0]
-        n = len(source)
-        sub = np.arange(n)
-        if n > config.max_source_points:
-            sub = np.sort(rng.choice(n, config.max_source_points, replace=False))
-        T0 = rel_gt[k - 1] if k > 0 else np.eye(4)
-        moved = source[sub] @ T0[:3, :3].T + T0[:3, 3]
-        c, v = KdTree(target, str(seq.scan_path(frames[k]))).query(
-            moved, config.num_candidates, config.candidate_radius
-        )
-        rows.append(sub)
-        cands.append(c)
-        valids.append(v)
-        T_init.append(T0)
     return {
         "name": seq.sequence,
         "scans": scans,
-        "rows": rows,
-        "candidates": cands,
-        "valid": valids,
-        "T_init": np.stack(T_init),
         "gt_cam": gt_cam[frames.start : frames.stop],
         "Tr_cam_velo": seq.Tr_cam_velo,
     }
 
 
-# The BatchConfig fields that prepare_window uses; the others act on the device side only.
-_PREPARATION_FIELDS = ("num_candidates", "candidate_radius", "max_source_points", "seed")
+def _lidar_poses(gt_cam: np.ndarray, Tr_cam_velo: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(Tr_cam_velo) @ gt_cam @ Tr_cam_velo
 
 
-def _cache_key(seq, frames, odometry, config, model, backbone) -> str:
+def _relative_motions(gt_cam: np.ndarray, Tr_cam_velo: np.ndarray) -> np.ndarray:
+    """Ground-truth LiDAR motions from each scan to the next (n - 1, 4, 4)."""
+    gt_lidar = _lidar_poses(gt_cam, Tr_cam_velo)
+    return np.linalg.inv(gt_lidar[:-1]) @ gt_lidar[1:]
+
+
+def prepare_pairs(window: dict, config: BatchConfig) -> dict[str, np.ndarray]:
+    """Each pair of a :func:`prepare_scans` window: source rows (a fixed random subset),
+    its local map and the candidates in it, and the initial guess, as host arrays.
+
+    The initial guess is the previous interval's ground-truth motion (constant velocity; the
+    identity for the first pair); the candidates are found at that guess. The map of pair k
+    holds up to ``map_scans`` scans, k, k - map_stride, ..., placed by the ground truth.
+    """
+    scans, name = window["scans"], window["name"]
+    gt_lidar = _lidar_poses(window["gt_cam"], window["Tr_cam_velo"])
+    rel_gt = np.linalg.inv(gt_lidar[:-1]) @ gt_lidar[1:]
+    M = config.map_scans
+    rng = np.random.default_rng(config.seed)
+    out = {key: [] for key in ("rows", "candidates", "slots", "valid", "map_scans", "T_map")}
+    T_init = []
+    for k in range(len(scans) - 1):
+        source = scans[k + 1][0]
+        n = len(source)
+        sub = np.arange(n)
+        if n > config.max_source_points:
+            sub = np.sort(rng.choice(n, config.max_source_points, replace=False))
+        members = [k - j * config.map_stride for j in range(M) if k - j * config.map_stride >= 0]
+        T_map = np.linalg.inv(gt_lidar[k]) @ gt_lidar[members]
+        merged = np.concatenate(
+            [scans[m][0] @ T[:3, :3].T + T[:3, 3] for m, T in zip(members, T_map, strict=True)]
+        )
+        slot_of = np.concatenate([np.full(len(scans[m][0]), j) for j, m in enumerate(members)])
+        row_of = np.concatenate([np.arange(len(scans[m][0])) for m in members])
+        T0 = rel_gt[k - 1] if k > 0 else np.eye(4)
+        moved = source[sub] @ T0[:3, :3].T + T0[:3, 3]
+        c, v = KdTree(merged, f"{name}: map of pair {k}").query(
+            moved, config.num_candidates, config.candidate_radius
+        )
+        unused = M - len(members)  # early pairs: fewer scans; the spare slots go unused
+        out["rows"].append(sub)
+        out["candidates"].append(row_of[c].astype(np.int32))
+        out["slots"].append(slot_of[c].astype(np.int8))
+        out["valid"].append(v)
+        out["map_scans"].append(np.asarray(members + [k] * unused, np.int32))
+        out["T_map"].append(np.concatenate([T_map, np.tile(np.eye(4), (unused, 1, 1))]))
+        T_init.append(T0)
+    return out | {"T_init": np.stack(T_init)}
+
+
+def prepare_window(
+    seq: io.KittiSequence,
+    frames: range,
+    odometry: OdometryConfig,
+    config: BatchConfig,
+    model: GLOAMModel | None = None,
+    backbone: Backbone | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, np.ndarray]:
+    """Prepared scans and pairs of one window of ``seq`` as host arrays (see :func:`stack`)."""
+    window = prepare_scans(seq, frames, odometry, model, backbone, progress)
+    return window | prepare_pairs(window, config)
+
+
+# The BatchConfig fields that prepare_pairs uses; the others act on the device side only.
+_PAIR_FIELDS = (
+    "num_candidates", "candidate_radius", "max_source_points", "seed", "map_scans", "map_stride"
+)  # fmt: skip
+_SCAN_ARRAYS = ("points", "values", "vectors", "pca")
+_PAIR_ARRAYS = ("rows", "candidates", "slots", "valid", "map_scans", "T_map")
+
+
+def _cache_keys(seq, frames, odometry, config, model, backbone) -> tuple[str, str]:
+    """Keys of a window's prepared scans and of its pairs (which also depend on the scans)."""
     parts = {
         "sequence": str(seq.sequence_dir.resolve()),
         "frames": [frames.start, frames.stop],
         "odometry": asdict(odometry),
-        "batch": {k: getattr(config, k) for k in _PREPARATION_FIELDS},
         "backbone": None if backbone is None else [backbone.name, backbone.options()],
     }
     h = hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode())
     if model is not None:
         for a in model.pca:
             h.update(np.ascontiguousarray(a, np.float64).tobytes())
-    return h.hexdigest()[:16]
+    scan_key = h.hexdigest()[:16]
+    pair_parts = {k: getattr(config, k) for k in _PAIR_FIELDS}
+    pair_key = hashlib.sha1(json.dumps([scan_key, pair_parts]).encode()).hexdigest()[:16]
+    return scan_key, pair_key
 
 
-def _save_window(path: Path, w: dict) -> None:
-    arrays = {"T_init": w["T_init"], "gt_cam": w["gt_cam"], "Tr_cam_velo": w["Tr_cam_velo"]}
+def _save_scans(path: Path, w: dict) -> None:
+    arrays = {"gt_cam": w["gt_cam"], "Tr_cam_velo": w["Tr_cam_velo"]}
     for k, scan in enumerate(w["scans"]):
-        for name, a in zip(("points", "values", "vectors", "pca"), scan, strict=True):
+        for name, a in zip(_SCAN_ARRAYS, scan, strict=True):
             arrays[f"scan{k}_{name}"] = a
-    for k in range(len(w["rows"])):
-        arrays[f"pair{k}_rows"] = w["rows"][k]
-        arrays[f"pair{k}_candidates"] = w["candidates"][k]
-        arrays[f"pair{k}_valid"] = w["valid"][k]
     io.write_npz(path, name=np.array(w["name"]), **arrays)
 
 
-def _load_window(path: Path) -> dict:
+def _load_scans(path: Path) -> dict:
     with np.load(path, allow_pickle=False) as z:
         n = len(z["gt_cam"])
         return {
             "name": str(z["name"]),
-            "scans": [tuple(z[f"scan{k}_{a}"] for a in ("points", "values", "vectors", "pca"))
-                      for k in range(n)],
-            "rows": [z[f"pair{k}_rows"] for k in range(n - 1)],
-            "candidates": [z[f"pair{k}_candidates"] for k in range(n - 1)],
-            "valid": [z[f"pair{k}_valid"] for k in range(n - 1)],
-            "T_init": z["T_init"],
+            "scans": [tuple(z[f"scan{k}_{a}"] for a in _SCAN_ARRAYS) for k in range(n)],
             "gt_cam": z["gt_cam"],
             "Tr_cam_velo": z["Tr_cam_velo"],
-        }  # fmt: skip
+        }
+
+
+def _save_pairs(path: Path, p: dict) -> None:
+    arrays = {f"pair{k}_{a}": p[a][k] for a in _PAIR_ARRAYS for k in range(len(p["rows"]))}
+    io.write_npz(path, T_init=p["T_init"], **arrays)
+
+
+def _load_pairs(path: Path) -> dict:
+    with np.load(path, allow_pickle=False) as z:
+        n = len(z["T_init"])
+        return {a: [z[f"pair{k}_{a}"] for k in range(n)] for a in _PAIR_ARRAYS} | {
+            "T_init": z["T_init"]
+        }
 
 
 def load_windows(
@@ -287,25 +353,33 @@ def load_windows(
     progress: Callable[[str, int, int], None] | None = None,
 ) -> BatchData:
     """Prepare the first ``frames`` scans (all by default) of each sequence under ``root`` and
-    stack them (:func:`stack`). With ``cache_dir``, prepared windows are saved there
-    (atomically) and reused by later runs with the same settings and PCA."""
+    stack them (:func:`stack`). With ``cache_dir``, prepared scans and pairs are saved there
+    (atomically, apart, since pairs are cheap to redo) and reused by later runs with the same
+    settings and PCA."""
     windows = []
     for name in sequences:
         seq = io.KittiSequence(root, name)
         window = range(0, len(seq) if frames is None else min(frames, len(seq)))
-        path = None
+        scan_path = pair_path = None
         if cache_dir is not None:
-            key = _cache_key(seq, window, odometry, config, model, backbone)
-            path = Path(cache_dir) / f"window_{name}_{key}.npz"
-            if path.is_file():
-                windows.append(_load_window(path))
-                continue
-        step = None if progress is None else partial(progress, name, len(window))
-        w = prepare_window(seq, window, odometry, config, model, backbone, step)
-        if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            _save_window(path, w)
-        windows.append(w)
+            scan_key, pair_key = _cache_keys(seq, window, odometry, config, model, backbone)
+            scan_path = Path(cache_dir) / f"scans_{name}_{scan_key}.npz"
+            pair_path = Path(cache_dir) / f"pairs_{name}_{pair_key}.npz"
+            scan_path.parent.mkdir(parents=True, exist_ok=True)
+        if scan_path is not None and scan_path.is_file():
+            w = _load_scans(scan_path)
+        else:
+            step = None if progress is None else partial(progress, name, len(window))
+            w = prepare_scans(seq, window, odometry, model, backbone, step)
+            if scan_path is not None:
+                _save_scans(scan_path, w)
+        if pair_path is not None and pair_path.is_file():
+            pairs = _load_pairs(pair_path)
+        else:
+            pairs = prepare_pairs(w, config)
+            if pair_path is not None:
+                _save_pairs(pair_path, pairs)
+        windows.append(w | pairs)
     return stack(windows, config)
 
 
@@ -317,7 +391,7 @@ def stack(windows: list[dict], config: BatchConfig) -> BatchData:
     size = pc.bucket_size(max(len(s[0]) for s in all_scans))
     P = max(len(r) for w in windows for r in w["rows"])
     scan_cols = [[], [], [], [], []]
-    pair_cols = [[], [], [], [], [], [], []]
+    pair_cols = {key: [] for key in PairSet._fields}
     info, scan_offset, pair_offset = [], 0, 0
     for w in windows:
         for scan in w["scans"]:
@@ -330,30 +404,32 @@ def stack(windows: list[dict], config: BatchConfig) -> BatchData:
         n = len(w["scans"])
         for k in range(n - 1):
             rows, row_mask = pc.pad(w["rows"][k].astype(np.int32), P)
-            pair_cols[0].append(scan_offset + k)
-            pair_cols[1].append(scan_offset + k + 1)
-            pair_cols[2].append(rows)
-            pair_cols[3].append(row_mask)
-            pair_cols[4].append(pc.pad(w["candidates"][k], P)[0])
-            pair_cols[5].append(pc.pad(w["valid"][k], P)[0])
-            pair_cols[6].append(w["T_init"][k])
+            # Candidates as rows of the flattened scans: the map slot's scan, then the row.
+            scan_of = scan_offset + w["map_scans"][k][w["slots"][k].astype(np.int64)]
+            flat = (scan_of * size + w["candidates"][k]).astype(np.int32)
+            pair_cols["target"].append(scan_offset + k)
+            pair_cols["source"].append(scan_offset + k + 1)
+            pair_cols["rows"].append(rows)
+            pair_cols["row_mask"].append(row_mask)
+            pair_cols["candidates"].append(pc.pad(flat, P)[0])
+            pair_cols["slots"].append(pc.pad(w["slots"][k].astype(np.int32), P)[0])
+            pair_cols["valid"].append(pc.pad(w["valid"][k], P)[0])
+            pair_cols["T_target_map"].append(w["T_map"][k])
+            pair_cols["T_init"].append(w["T_init"][k])
         gt = np.asarray(w["gt_cam"], np.float64)
         lengths = scaled_lengths(gt, config.segment_fractions, source=w["name"])
         plan = segment_plan(gt, lengths, step=config.segment_step, source=w["name"])
         info.append(Window(w["name"], pair_offset, pair_offset + n - 1, gt, w["Tr_cam_velo"], plan))
         scan_offset, pair_offset = scan_offset + n, pair_offset + n - 1
+    if scan_offset * size >= 1 << 31:
+        raise InputError(None, f"{scan_offset} scans of {size} rows overflow int32 row indices")
     scans = ScanSet(
         *(jnp.asarray(np.stack(c), real) for c in scan_cols[:4]),
         jnp.asarray(np.stack(scan_cols[4])),
     )
+    floats = {"T_target_map", "T_init"}
     pairs = PairSet(
-        jnp.asarray(pair_cols[0], jnp.int32),
-        jnp.asarray(pair_cols[1], jnp.int32),
-        jnp.asarray(np.stack(pair_cols[2])),
-        jnp.asarray(np.stack(pair_cols[3])),
-        jnp.asarray(np.stack(pair_cols[4])),
-        jnp.asarray(np.stack(pair_cols[5])),
-        jnp.asarray(np.stack(pair_cols[6]), real),
+        **{k: jnp.asarray(np.stack(v), real if k in floats else None) for k, v in pair_cols.items()}
     )
     return BatchData(scans, pairs, info)
 
@@ -365,15 +441,19 @@ def stack(windows: list[dict], config: BatchConfig) -> BatchData:
 def register_pair(learned: Learned, scans: ScanSet, pair: PairSet, config: BatchConfig) -> Array:
     """One registration (``pair`` holds one row of each PairSet field): ``T_target_source``
     (4, 4) after ``config.rounds`` GICP rounds from ``pair.T_init``."""
-    t, s = pair.target, pair.source
     P, K = pair.candidates.shape
-    # The target as just the candidate rows (P * K), so nothing of size Q is gathered per pair.
+    # The target as just the candidate rows (P * K), so nothing of size Q is gathered per pair;
+    # each placed in the target's frame by its map slot's pose (k-NN eigenvectors rotate too).
     flat = pair.candidates.reshape(-1)
-    t_covs, t_feats = attributes(
-        scans.values[t, flat], scans.vectors[t, flat], scans.pca[t, flat], learned, "plane"
-    )
-    target = Cloud(scans.points[t, flat], t_covs, scans.mask[t, flat], t_feats)
-    rows = pair.rows
+    T_map = pair.T_target_map[pair.slots.reshape(-1)]
+    R = T_map[:, :3, :3]
+    points = jnp.einsum("nij,nj->ni", R, scans.points.reshape(-1, 3)[flat]) + T_map[:, :3, 3]
+    vectors = R @ scans.vectors.reshape(-1, 3, 3)[flat]
+    S, Q, F = scans.pca.shape
+    pca = scans.pca.reshape(S * Q, F)[flat]
+    t_covs, t_feats = attributes(scans.values.reshape(-1, 3)[flat], vectors, pca, learned, "plane")
+    target = Cloud(points, t_covs, scans.mask.reshape(-1)[flat], t_feats)
+    s, rows = pair.source, pair.rows
     s_covs, s_feats = attributes(
         scans.values[s, rows], scans.vectors[s, rows], scans.pca[s, rows], learned, "plane"
     )

@@ -91,6 +91,9 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     cfg = load_config(args.config, TrainConfig)
+    if cfg.batch.map_scans != 1:
+        raise SystemExit(f"{args.config}: the align_prepared loop registers scan to scan; "
+                         "use a config with map_scans: 1")  # fmt: skip
     problem = setup(cfg, args.run, cache_dir=args.cache)
     data, config = problem.data, dataclasses.replace(cfg.batch, association="hard")
     batched = jax.jit(lambda lp: batch.register_pairs(lp, data.scans, data.pairs, config))

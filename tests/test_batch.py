@@ -73,13 +73,42 @@ def test_evaluator_errors_match_the_loss(data):
 def test_window_cache_round_trip(sim_sequence, tmp_path, data):
     cached = batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=12,
                                 cache_dir=tmp_path)  # fmt: skip
-    assert len(list(tmp_path.glob("window_00_*.npz"))) == 1
+    assert len(list(tmp_path.glob("scans_00_*.npz"))) == 1
+    assert len(list(tmp_path.glob("pairs_00_*.npz"))) == 1
     again = batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=12,
                                cache_dir=tmp_path)  # fmt: skip
     leaves = [jax.tree_util.tree_leaves((d.scans, d.pairs)) for d in (data, cached, again)]
     for a, b, c in zip(*leaves, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
         np.testing.assert_array_equal(np.asarray(b), np.asarray(c))
+
+
+def test_local_map_targets(sim_sequence, tmp_path, data):
+    """Frame-to-model pairs: each target is a ground-truth-placed map of earlier scans; the
+    cached scans are shared with frame-to-frame pairs, and the registrations still recover
+    the ground truth."""
+    config = dataclasses.replace(CONFIG, map_scans=3, map_stride=2)
+    for c in (CONFIG, config):
+        mapped = batch.load_windows(sim_sequence, ["00"], ODOMETRY, c, frames=12,
+                                    cache_dir=tmp_path)  # fmt: skip
+    assert len(list(tmp_path.glob("scans_00_*.npz"))) == 1
+    assert len(list(tmp_path.glob("pairs_00_*.npz"))) == 2
+    pairs = mapped.pairs
+    assert pairs.T_target_map.shape == (11, 3, 4, 4)
+    slots = np.asarray(pairs.slots)[np.asarray(pairs.valid)]
+    assert set(np.unique(slots)) == {0, 1, 2}
+    # Pair 5 maps scans 5, 3, 1 into scan 5's frame, by the ground truth.
+    gt = io.KittiSequence(sim_sequence, "00").gt_poses_lidar[:12]
+    np.testing.assert_allclose(
+        np.asarray(pairs.T_target_map[5, 1]), np.linalg.inv(gt[5]) @ gt[3], atol=1e-5
+    )
+    # Pair 0 has only scan 0: its spare slots are the identity and never chosen.
+    assert np.all(np.asarray(pairs.slots[0]) == 0)
+    np.testing.assert_array_equal(np.asarray(pairs.T_target_map[0, 2]), np.eye(4))
+    T_rel = np.asarray(batch.Evaluator(mapped, config)(Learned()).T_rel)
+    rel_gt = np.linalg.inv(gt[:-1]) @ gt[1:]
+    dt = np.linalg.norm((np.linalg.inv(rel_gt) @ T_rel)[:, :3, 3], axis=1)
+    assert np.median(dt) < 0.03 and dt.max() < 0.05, dt
 
 
 def test_bad_input(sim_sequence, tmp_path):
@@ -92,6 +121,8 @@ def test_bad_input(sim_sequence, tmp_path):
                              model=init_model(jax.random.PRNGKey(0), _pca()))  # fmt: skip
     with pytest.raises(InputError, match="inner_steps"):
         dataclasses.replace(CONFIG, inner_steps=1)
+    with pytest.raises(InputError, match="map_scans"):
+        dataclasses.replace(CONFIG, map_scans=0)
     # A sequence without ground truth cannot be trained or scored on.
     (tmp_path / "sequences").symlink_to(sim_sequence / "sequences")
     with pytest.raises(InputError, match="ground truth"):
