@@ -76,8 +76,8 @@ class BatchConfig:
         if min(self.rounds, self.num_candidates, self.max_source_points, self.map_scans,
                self.map_stride) < 1:  # fmt: skip
             raise InputError(
-                None, "rounds, num_candidates, max_source_points, map_scans and map_stride "
-                "must be >= 1"
+                None,
+                "rounds, num_candidates, max_source_points, map_scans and map_stride must be >= 1",
             )
         object.__setattr__(self, "segment_fractions", tuple(self.segment_fractions))
 

@@ -1,13 +1,13 @@
 """Paper-style tables from odometry runs on the protocol's simulated windows.
 
-    python scripts/make_tables.py --data data/protocol --tpe runs/tpe/model.npz \\
-        --grad runs/grad/model.npz --out results/tables
+    python scripts/make_tables.py --data data/protocol --model TPE=runs/tpe/model.npz \\
+        --model grad=runs/grad/model.npz --ablation shipped --out results/tables
 
 * Table I: translational error (%) per sequence, training (01 03 05 07 09) and test (00 02 04
-  06 08 10) windows, for GICP and GLOAM trained by each mode.
+  06 08 10) windows, for GICP and each ``--model LABEL=FILE`` (a row "GLOAM (LABEL)";
+  ``shipped`` is the package's model when no file is given).
 * Table II: ablation on the test windows, t_err (%) and r_err (deg/100 m): GICP, +DA, +CE,
-  +DA+CE (Generalized LOAM), the learned parts taken from one model (``--ablation``, default
-  the shipped model).
+  +DA+CE (Generalized LOAM), the learned parts taken from the model labelled ``--ablation``.
 
 Every run is the full odometry (``gloam run``: frame-to-model, deskew, keyframe map) with
 ``configs/<method>.yaml``; ``--mode frame_to_frame`` registers each scan to the previous one
@@ -27,6 +27,7 @@ import numpy as np
 
 from gloam_jax import io, metrics
 from gloam_jax.config import load_config
+from gloam_jax.models import shipped_model_path
 from gloam_jax.pipeline import run_sequence
 from gloam_jax.training.losses import TRAINING_FRACTIONS, scaled_lengths
 from gloam_jax.training.protocol import TEST_SEQUENCES, TRAIN_SEQUENCES
@@ -69,17 +70,18 @@ def fmt(x: float) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("data/protocol"))
-    parser.add_argument("--tpe", type=Path, help="model trained by TPE")
-    parser.add_argument("--grad", type=Path, help="model trained by gradients")
-    parser.add_argument("--shipped", type=Path, help="the shipped model (gloam_default.npz)")
-    parser.add_argument(
-        "--ablation", type=Path, help="model for Table II (default: --shipped, else --grad)"
-    )
+    parser.add_argument("--model", action="append", default=[], help="LABEL=FILE, or shipped")
+    parser.add_argument("--ablation", help="label of the --model for Table II")
     parser.add_argument("--mode", default="frame_to_model", help="or frame_to_frame")
     parser.add_argument("--sequences", default=None, help="only these (default: all 11)")
     parser.add_argument("--out", type=Path, default=Path("results/tables"))
     args = parser.parse_args()
-    ablation = args.ablation or args.shipped or args.grad
+    models = {}
+    for item in args.model:
+        label, _, path = item.partition("=")
+        models[f"GLOAM ({label})"] = Path(path or shipped_model_path())
+    if args.ablation is not None and f"GLOAM ({args.ablation})" not in models:
+        raise SystemExit(f"--ablation {args.ablation}: no --model has that label")
     all_seqs = TRAIN_SEQUENCES + TEST_SEQUENCES
     chosen = all_seqs if args.sequences is None else tuple(args.sequences.split(","))
     results: dict[str, dict[str, dict]] = {}
@@ -93,22 +95,15 @@ def main() -> None:
             results.setdefault(label, {})[s] = row
 
     do("GICP", "gicp", None, all_seqs)
-    models = {"GLOAM (TPE)": args.tpe, "GLOAM (grad)": args.grad, "GLOAM (shipped)": args.shipped}
     for label, weights in models.items():
-        if weights is not None:
-            do(label, "gloam", weights, all_seqs)
+        do(label, "gloam", weights, all_seqs)
     ablation_rows = {"GICP": "GICP"}
-    if ablation is not None:
-        tags = {args.shipped: "shipped", args.grad: "grad", args.tpe: "TPE"}
-        tag = tags.get(ablation, "ablation")
+    if args.ablation is not None:
+        weights = models[f"GLOAM ({args.ablation})"]
         for label, method in (("GICP+DA", "gicp_da"), ("GICP+CE", "gicp_ce")):
-            do(f"{label} ({tag})", method, ablation, TEST_SEQUENCES)
-            ablation_rows[label] = f"{label} ({tag})"
-        gloam = next((k for k, v in models.items() if v == ablation), None)
-        if gloam is None:
-            do("GLOAM (ablation)", "gloam", ablation, TEST_SEQUENCES)
-            gloam = "GLOAM (ablation)"
-        ablation_rows["GICP+DA+CE (GLOAM)"] = gloam
+            do(f"{label} ({args.ablation})", method, weights, TEST_SEQUENCES)
+            ablation_rows[label] = f"{label} ({args.ablation})"
+        ablation_rows["GICP+DA+CE (GLOAM)"] = f"GLOAM ({args.ablation})"
 
     lines = ["Table I: translational error (%), window-scaled devkit segments", ""]
     head = ["method", *TRAIN_SEQUENCES, "train avg", *TEST_SEQUENCES, "test avg"]
