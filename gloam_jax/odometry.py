@@ -128,7 +128,7 @@ def preprocess_scan(
     if len(points) == 0:
         raise InputError(source, f"no points between {config.min_range} and {config.max_range} m")
     t = times[keep] if times is not None else azimuth_times(points, config.sweep_duration)
-    columns = [points, t]
+    columns = [np.column_stack([points, t])]
     if model is not None:
         if features is None or len(features) != len(scan):
             rows = "no" if features is None else len(features)
@@ -137,12 +137,14 @@ def preprocess_scan(
         columns.append(model.pca_features(features)[keep])
     # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
     # few voxel centres with their mean time; features are averaged per voxel alike.
-    reduced = pc.voxel_downsample(np.column_stack(columns), config.downsampling_resolution)
+    if config.downsampling_resolution > 0:
+        columns = pc.voxel_means(points, config.downsampling_resolution, columns)
+    reduced, pca = columns[0], (columns[1] if model is not None else None)
     points = reduced[:, :3]
     if config.deskew and velocity is not None:
         size = None if buckets is None else buckets("deskew", len(points))
         points = deskew(points, reduced[:, 3], velocity, frame_dt, size)
-    return points, (reduced[:, 4:] if model is not None else None), dropped
+    return points, pca, dropped
 
 
 class LocalMap:

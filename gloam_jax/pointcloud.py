@@ -7,6 +7,8 @@ of distinct shapes, and so of compilations, small.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from gloam_jax.errors import InputError
@@ -89,6 +91,19 @@ def voxel_index(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.n
     return inverse, counts
 
 
+def voxel_means(
+    points: np.ndarray, voxel_size: float, columns: Sequence[np.ndarray]
+) -> list[np.ndarray]:
+    """Per-voxel means of row-aligned arrays (N, D_i), each in its own dtype, the voxels of
+    ``voxel_size`` metres taken from ``points`` (N, 3+) in sorted key order: [(M, D_i)]."""
+    order, starts, counts = _voxel_groups(points, voxel_size)
+    out = []
+    for a in columns:
+        sums = np.add.reduceat(a[order], starts, axis=0)
+        out.append((sums / counts.reshape(-1, *([1] * (a.ndim - 1)))).astype(a.dtype))
+    return out
+
+
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Mean of the rows (all columns) falling in each voxel of ``voxel_size`` metres: (N, D).
 
@@ -96,9 +111,7 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """
     if voxel_size <= 0 or len(points) == 0:
         return points
-    order, starts, counts = _voxel_groups(points, voxel_size)
-    sums = np.add.reduceat(points[order].astype(np.float64), starts, axis=0)
-    return (sums / counts[:, None]).astype(points.dtype)
+    return voxel_means(points, voxel_size, [points.astype(np.float64)])[0].astype(points.dtype)
 
 
 def bucket_size(n: int, buckets: tuple[int, ...] = BUCKETS) -> int:

@@ -60,3 +60,14 @@ def test_range_mask_and_buckets():
     assert sticky("source", 500) == pc.bucket_size(1200)  # never shrinks
     padded, mask = pc.pad(np.ones((3, 2)), 5)
     assert padded.shape == (5, 2) and mask.tolist() == [True] * 3 + [False] * 2
+
+
+def test_voxel_means_of_several_arrays_keep_their_dtypes():
+    rng = np.random.default_rng(2)
+    points = rng.uniform(-10, 10, (3000, 3))
+    features = rng.normal(size=(3000, 6)).astype(np.float32)
+    xyz, feats = pc.voxel_means(points, 1.5, [points, features])
+    assert feats.dtype == np.float32 and len(xyz) == len(feats)
+    both = pc.voxel_downsample(np.column_stack([points, features]), 1.5)
+    np.testing.assert_allclose(xyz, both[:, :3], atol=1e-12)
+    np.testing.assert_allclose(feats, both[:, 3:], atol=1e-5)
