@@ -198,7 +198,8 @@ def prepare_scans(
         raise InputError(seq.sequence_dir, f"need at least 2 scans, have {len(frames)}")
     if model is not None and backbone is None:
         raise InputError(None, "a model needs the backbone that makes its features")
-    velocity = _velocities(_relative_motions(gt_cam[frames.start : frames.stop], seq.Tr_cam_velo))
+    gt_lidar = _lidar_poses(gt_cam[frames.start : frames.stop], seq.Tr_cam_velo)
+    velocity = _velocities(_relative_motions(gt_lidar))
     times = seq.times
     scans = []
     for k, i in enumerate(frames):
@@ -218,9 +219,8 @@ def _lidar_poses(gt_cam: np.ndarray, Tr_cam_velo: np.ndarray) -> np.ndarray:
     return np.linalg.inv(Tr_cam_velo) @ gt_cam @ Tr_cam_velo
 
 
-def _relative_motions(gt_cam: np.ndarray, Tr_cam_velo: np.ndarray) -> np.ndarray:
+def _relative_motions(gt_lidar: np.ndarray) -> np.ndarray:
     """Ground-truth LiDAR motions from each scan to the next (n - 1, 4, 4)."""
-    gt_lidar = _lidar_poses(gt_cam, Tr_cam_velo)
     return np.linalg.inv(gt_lidar[:-1]) @ gt_lidar[1:]
 
 
@@ -234,7 +234,7 @@ def prepare_pairs(window: dict, config: BatchConfig) -> dict[str, np.ndarray]:
     """
     scans, name = window["scans"], window["name"]
     gt_lidar = _lidar_poses(window["gt_cam"], window["Tr_cam_velo"])
-    rel_gt = np.linalg.inv(gt_lidar[:-1]) @ gt_lidar[1:]
+    rel_gt = _relative_motions(gt_lidar)
     M = config.map_scans
     rng = np.random.default_rng(config.seed)
     out = {key: [] for key in ("rows", "candidates", "slots", "valid", "map_scans", "T_map")}
