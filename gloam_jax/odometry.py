@@ -137,8 +137,7 @@ def preprocess_scan(
         columns.append(model.pca_features(features)[keep])
     # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
     # few voxel centres with their mean time; features are averaged per voxel alike.
-    if config.downsampling_resolution > 0:
-        columns = pc.voxel_means(points, config.downsampling_resolution, columns)
+    columns = pc.voxel_means(points, config.downsampling_resolution, columns)
     reduced, pca = columns[0], (columns[1] if model is not None else None)
     points = reduced[:, :3]
     if config.deskew and velocity is not None:

@@ -95,7 +95,10 @@ def voxel_means(
     points: np.ndarray, voxel_size: float, columns: Sequence[np.ndarray]
 ) -> list[np.ndarray]:
     """Per-voxel means of row-aligned arrays (N, D_i), each in its own dtype, the voxels of
-    ``voxel_size`` metres taken from ``points`` (N, 3+) in sorted key order: [(M, D_i)]."""
+    ``voxel_size`` metres taken from ``points`` (N, 3+) in sorted key order: [(M, D_i)].
+    A size of 0 (no downsampling) or no points returns the arrays as they are."""
+    if voxel_size <= 0 or len(points) == 0:
+        return list(columns)
     order, starts, counts = _voxel_groups(points, voxel_size)
     out = []
     for a in columns:
@@ -109,9 +112,7 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
 
     Output rows follow the voxels' sorted keys, so they are deterministic.
     """
-    if voxel_size <= 0 or len(points) == 0:
-        return points
-    return voxel_means(points, voxel_size, [points.astype(np.float64)])[0].astype(points.dtype)
+    return voxel_means(points, voxel_size, [np.asarray(points, np.float64)])[0].astype(points.dtype)
 
 
 def bucket_size(n: int, buckets: tuple[int, ...] = BUCKETS) -> int:

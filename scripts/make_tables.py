@@ -1,7 +1,7 @@
 """Paper-style tables from odometry runs on the protocol's simulated windows.
 
     python scripts/make_tables.py --data data/protocol --model TPE=runs/tpe/model.npz \\
-        --model grad=runs/grad/model.npz --ablation shipped --out results/tables
+        --model grad=runs/grad/model.npz --model shipped --ablation shipped --out results/tables
 
 * Table I: translational error (%) per sequence, training (01 03 05 07 09) and test (00 02 04
   06 08 10) windows, for GICP and each ``--model LABEL=FILE`` (a row "GLOAM (LABEL)";
