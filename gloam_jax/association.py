@@ -17,7 +17,7 @@ from jax import Array
 
 def costs(a: Array, b: Array, fa: Array, fb: Array) -> Array:
     """Pair costs (N, K): a (N, 3), b (N, K, 3), fa (N, F), fb (N, K, F)."""
-    # Same expression as the xyz-only association (gicp._pairs): with fa = fb = 0 the feature
+    # Same expression as the xyz-only association (gicp._whitened): with fa = fb = 0 the feature
     # term adds an exact 0, so the argmin is bit-identical.
     d2 = jnp.sum((b - a[:, None, :]) ** 2, axis=-1)
     return d2 + jnp.sum((fb - fa[:, None, :]) ** 2, axis=-1)

@@ -150,7 +150,7 @@ def _prepare_scan(seq, i, odometry, model, backbone, velocity, frame_dt):
     scan = seq.scan(i)
     path = str(seq.scan_path(i))
     features = None if model is None else backbone(scan, path=path, frame=i)
-    points, pca, _ = preprocess_scan(
+    points, pca, _, _ = preprocess_scan(
         scan,
         seq.point_times(i),
         odometry,

@@ -175,12 +175,13 @@ def build_cloud(
     num_neighbors: int,
     regularizer: str = "plane",
     source: str | None = None,
-    buckets: pc.StickyBuckets | None = None,
+    size: int | None = None,
     pca_features: np.ndarray | None = None,
     learned: Learned | None = None,
 ) -> PreparedCloud:
     """Tree, covariances and association features of clean, downsampled points (N, 3)
-    float64; ``pca_features`` (N, 6) feed the ``learned`` parts (see cloud_attributes)."""
+    float64; ``pca_features`` (N, 6) feed the ``learned`` parts (see cloud_attributes).
+    ``size``: rows the jitted covariance code sees (default: the bucket size)."""
     learned = Learned() if learned is None else learned
     tree = KdTree(points, source)
     neighbours, _ = tree.query(points, num_neighbors)
@@ -189,7 +190,7 @@ def build_cloud(
             raise InputError(source, "learned covariances or association need point features")
         pca_features = np.zeros((len(points), 0))
     # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
-    size = pc.bucket_size(len(points)) if buckets is None else buckets("prepare", len(points))
+    size = pc.bucket_size(len(points)) if size is None else size
     covs, features = cloud_attributes(
         jnp.asarray(pc.pad(points, size)[0]),
         jnp.asarray(pc.pad(neighbours, size)[0]),
@@ -202,19 +203,22 @@ def build_cloud(
     return PreparedCloud(points, covs, tree, features)
 
 
-def _whiten(C: Array, r: Array) -> Array:
-    """``L^-1 r`` for ``C = L L^T`` (3x3 Cholesky, written out so XLA fuses it): C (..., 3, 3),
-    r (..., 3) -> (..., 3)."""
+def _inverse_cholesky(C: Array) -> Array:
+    """``L^-1`` for ``C = L L^T`` (3x3, written out so XLA fuses it): (..., 3, 3) -> (..., 3, 3),
+    lower triangular, so that ``L^-1 r`` whitens a residual of covariance C."""
     l00 = jnp.sqrt(C[..., 0, 0])
     l10 = C[..., 1, 0] / l00
     l20 = C[..., 2, 0] / l00
     l11 = jnp.sqrt(C[..., 1, 1] - l10 * l10)
     l21 = (C[..., 2, 1] - l20 * l10) / l11
     l22 = jnp.sqrt(C[..., 2, 2] - l20 * l20 - l21 * l21)
-    y0 = r[..., 0] / l00
-    y1 = (r[..., 1] - l10 * y0) / l11
-    y2 = (r[..., 2] - l20 * y0 - l21 * y1) / l22
-    return jnp.stack([y0, y1, y2], axis=-1)
+    m00, m11, m22 = 1 / l00, 1 / l11, 1 / l22
+    m10 = -l10 * m00 * m11
+    m21 = -l21 * m11 * m22
+    m20 = -(l20 * m00 + l21 * m10) * m22
+    zero = jnp.zeros_like(m00)
+    rows = [[m00, zero, zero], [m10, m11, zero], [m20, m21, m22]]
+    return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
 class Partners(NamedTuple):
@@ -241,24 +245,34 @@ def choose_partners(
     return Partners(candidates, jnp.exp(0.5 * log_w))
 
 
-class _Pairs(NamedTuple):
-    e: Array  # (N, J, 3) whitened, weighted residuals, zero for outliers
-    inlier: Array  # (N, J)
-    moved: Array  # (N, 3) source points at T
-    C: Array  # (N, J, 3, 3) combined covariances C_b + R C_a R^T
+class Pairs(NamedTuple):
+    """A round's pairs, fixed through its LM steps: source points a (N, 3), their partners'
+    target points b (N, J, 3), the whitening ``W = sqrt(w) L^-1`` (N, J, 3, 3) of each pair's
+    ``C_b + R C_a R^T = L L^T`` at the round's starting rotation R, and which pairs exist
+    (N, J)."""
+
+    a: Array
+    b: Array
+    W: Array
+    valid: Array
 
 
-def _pairs(
-    T: Array, source: Cloud, target: Cloud, partners: Partners, max_d2, R_weights: Array
-) -> _Pairs:
-    """Whitened residuals of each source point and its partners at T, the weights
-    ``C_b + R C_a R^T`` taken at the rotation ``R_weights``."""
-    a = source.points @ T[:3, :3].T + T[:3, 3]
-    r = target.points[partners.index] - a[:, None, :]
-    inlier = source.mask[:, None] & (partners.sqrt_weight > 0) & (jnp.sum(r * r, axis=-1) < max_d2)
-    C = target.covs[partners.index] + (R_weights @ source.covs @ R_weights.T)[:, None]
-    e = _whiten(C, r) * partners.sqrt_weight[..., None]
-    return _Pairs(jnp.where(inlier[..., None], e, 0.0), inlier, a, C)
+def make_pairs(R: Array, source: Cloud, target: Cloud, partners: Partners) -> Pairs:
+    """The :class:`Pairs` of ``partners``, weights taken at the rotation R (3, 3)."""
+    C = target.covs[partners.index] + (R @ source.covs @ R.T)[:, None]
+    W = _inverse_cholesky(C) * partners.sqrt_weight[..., None, None]
+    valid = source.mask[:, None] & (partners.sqrt_weight > 0)
+    return Pairs(source.points, target.points[partners.index], W, valid)
+
+
+def _whitened(T: Array, pairs: Pairs, max_d2) -> tuple[Array, Array, Array]:
+    """Whitened, weighted residuals ``W (b - T a)`` (N, J, 3), zero for outliers (pairs
+    farther apart than sqrt(max_d2)), the inlier mask (N, J) and the moved points T a (N, 3)."""
+    moved = pairs.a @ T[:3, :3].T + T[:3, 3]
+    r = pairs.b - moved[:, None, :]
+    inlier = pairs.valid & (jnp.sum(r * r, axis=-1) < max_d2)
+    e = jnp.einsum("njab,njb->nja", pairs.W, r)
+    return jnp.where(inlier[..., None], e, 0.0), inlier, moved
 
 
 def retract(xi: Array, T0: Array) -> Array:
@@ -287,46 +301,44 @@ def retract_host(xi: np.ndarray, T0: np.ndarray) -> np.ndarray:
 
 def _residuals(xi: Array, args) -> Array:
     # The weights hold the round's starting rotation, as GICP holds them fixed within a
-    # linearisation: the Cholesky factor stays out of the Jacobian (several times cheaper
-    # steps), and, being constant in xi rather than cut by stop_gradient, the residual is
-    # exactly the function LM minimises, so gradients through the solve are exact too.
-    T0, source, target, partners, max_d2 = args
-    return _pairs(retract(xi, T0), source, target, partners, max_d2, T0[:3, :3]).e
+    # linearisation: the whitening is computed once per round (several times cheaper steps),
+    # and, being constant in xi rather than cut by stop_gradient, the residual is exactly the
+    # function LM minimises, so gradients through the solve are exact too.
+    T0, pairs, max_d2 = args
+    return _whitened(retract(xi, T0), pairs, max_d2)[0]
 
 
 _ADJOINTS = {"unrolled": optx.RecursiveCheckpointAdjoint(), "implicit": optx.ImplicitAdjoint()}
 
 
 @jax.jit
-def gauss_newton_system(T, source: Cloud, target: Cloud, partners: Partners, max_d2):
+def gauss_newton_system(T, pairs: Pairs, max_d2):
     """H = J^T J, b = J^T e, error = e.e and the inlier count at T.
 
     J is the whitened residuals' Jacobian with respect to the increment xi = (rho, phi) of
-    :func:`retract`, ``d(b - exp(phi) R a - t - rho)/d xi = -[I, -hat(R a)]``, with the weights
-    held fixed at T as GICP does.
+    :func:`retract`, ``d(b - exp(phi) R a - t - rho)/d xi = -[I, -hat(R a)]``, with the pairs'
+    weights (their round's) held fixed, as GICP does within a linearisation.
     """
-    pairs = _pairs(T, source, target, partners, max_d2, T[:3, :3])
-    p, e, inlier = pairs.moved, pairs.e, pairs.inlier
+    e, inlier, p = _whitened(T, pairs, max_d2)
     eye = jnp.broadcast_to(jnp.eye(3, dtype=p.dtype), (p.shape[0], 3, 3))
-    d_rho = -eye
-    d_phi = geo.hat(p - T[:3, 3])  # d(-exp(phi) q)/d phi = hat(q), q = R a
-    columns = jnp.concatenate([d_rho, d_phi], axis=-1)[:, None]  # (N, 1, 3, 6)
-    J = jax.vmap(lambda col: _whiten(pairs.C, col), in_axes=-1, out_axes=-1)(columns)
-    J = jnp.where(inlier[..., None, None], J * partners.sqrt_weight[..., None, None], 0.0)
-    H = jnp.einsum("nmki,nmkj->ij", J, J)
-    b = jnp.einsum("nmki,nmk->i", J, e)
+    # d(-exp(phi) q)/d phi = hat(q), q = R a
+    columns = jnp.concatenate([-eye, geo.hat(p - T[:3, 3])], axis=-1)  # (N, 3, 6)
+    J = jnp.einsum("njab,nbk->njak", pairs.W, columns)
+    J = jnp.where(inlier[..., None, None], J, 0.0)
+    H = jnp.einsum("njai,njak->ik", J, J)
+    b = jnp.einsum("njai,nja->i", J, e)
     return H, b, jnp.sum(e * e), jnp.sum(inlier)
 
 
-def _lm(T0, source: Cloud, target: Cloud, partners: Partners, max_d2, inner_steps, adjoint):
-    """A few LM steps from T0 with fixed partners: the increment xi (6,)."""
+def _lm(T0, pairs: Pairs, max_d2, inner_steps, adjoint):
+    """A few LM steps from T0 with fixed pairs: the increment xi (6,)."""
     # The normal equations (6 x 6) are much cheaper than a QR of the (3N x 6) Jacobian.
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
     sol = optx.least_squares(
         _residuals,
         solver,
         jnp.zeros(6, T0.dtype),
-        (T0, source, target, partners, max_d2),
+        (T0, pairs, max_d2),
         max_steps=inner_steps,
         adjoint=_ADJOINTS[adjoint],
         throw=False,
@@ -344,17 +356,18 @@ def gicp_round(
     inner_steps: int,
     adjoint: str = "unrolled",
     temperature=None,
-) -> tuple[Array, Array, Partners]:
+) -> tuple[Array, Array, Pairs]:
     """One outer round, traceable (jit, vmap, grad): partners at T0, then LM from T0.
 
-    Returns T (4, 4), the increment xi (6,) with ``T = retract(xi, T0)`` and the partners.
+    Returns T (4, 4), the increment xi (6,) with ``T = retract(xi, T0)`` and the pairs.
     Partners are chosen among the candidates once, at T0, and held through the LM steps:
     re-choosing by distance inside LM would change the Mahalanobis cost in jumps that its
     trust region rejects.
     """
     partners = choose_partners(T0, source, target, candidates, valid, temperature)
-    xi = _lm(T0, source, target, partners, max_d2, inner_steps, adjoint)
-    return retract(xi, T0), xi, partners
+    pairs = make_pairs(T0[:3, :3], source, target, partners)
+    xi = _lm(T0, pairs, max_d2, inner_steps, adjoint)
+    return retract(xi, T0), xi, pairs
 
 
 @partial(jax.jit, static_argnames=("inner_steps", "adjoint"))
@@ -370,10 +383,8 @@ def solve_round(
 ) -> tuple[Array, Array, tuple]:
     """:func:`gicp_round` with hard association, then :func:`gauss_newton_system`'s
     (H, b, error, inliers) at the result, whose step decides convergence."""
-    T, xi, partners = gicp_round(
-        T0, source, target, candidates, valid, max_d2, inner_steps, adjoint
-    )
-    return T, xi, gauss_newton_system(T, source, target, partners, max_d2)
+    T, xi, pairs = gicp_round(T0, source, target, candidates, valid, max_d2, inner_steps, adjoint)
+    return T, xi, gauss_newton_system(T, pairs, max_d2)
 
 
 def align_prepared(
@@ -381,24 +392,21 @@ def align_prepared(
     source: PreparedCloud,
     init_T_target_source: np.ndarray | None = None,
     config: GICPConfig = GICPConfig(),
-    buckets: pc.StickyBuckets | None = None,
+    sizes: tuple[int, int] | None = None,
 ) -> RegistrationResult:
-    """Register prepared clouds; see :func:`align`. ``buckets`` keeps padded sizes from
-    shrinking across calls (odometry), so the solver compiles once."""
+    """Register prepared clouds; see :func:`align`. ``sizes``: the rows (source, target) the
+    solver sees (default: their bucket sizes); the odometry holds them fixed across frames,
+    so the solver compiles once."""
     T = np.eye(4) if init_T_target_source is None else np.asarray(init_T_target_source, float)
-    if buckets is None:
+    if sizes is None:
         src, tgt = source.padded(), target.padded()
     else:
-        src = source.padded(buckets("source", len(source.points)))
-        tgt = target.padded(buckets("target", len(target.points)))
+        src, tgt = source.padded(sizes[0]), target.padded(sizes[1])
     size = src.points.shape[0]
     max_d2 = jnp.asarray(config.max_correspondence_distance**2, dtype=_real())
     converged, iterations = False, 0
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007
-        moved = source.points @ T[:3, :3].T + T[:3, 3]
-        cand, valid = target.tree.query(
-            moved, config.num_candidates, config.max_correspondence_distance
-        )
+        cand, valid = find_candidates(target, source.points, T, config)
         cand, valid = pc.pad(cand, size)[0], pc.pad(valid, size)[0]
         _, xi, system = solve_round(
             jnp.asarray(T, dtype=_real()),
@@ -423,6 +431,15 @@ def align_prepared(
             converged = True
             break
     return RegistrationResult(T, converged, iterations, int(inliers), H, b, float(error))
+
+
+def find_candidates(
+    target: PreparedCloud, points: np.ndarray, T_target_source: np.ndarray, config: GICPConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``config.num_candidates`` nearest target points of source points (N, 3) at
+    ``T_target_source``, within the correspondence distance: ((N, K) indices, (N, K) mask)."""
+    moved = points @ T_target_source[:3, :3].T + T_target_source[:3, 3]
+    return target.tree.query(moved, config.num_candidates, config.max_correspondence_distance)
 
 
 def _largest_shift(T_from: np.ndarray, T_to: np.ndarray, radius: float) -> float:

@@ -19,7 +19,7 @@ class KdTree:
     def __init__(self, points: np.ndarray, source: str | None = None) -> None:
         self.points = np.ascontiguousarray(points[:, :3], dtype=np.float64)
         self.source = source
-        self.tree = cKDTree(self.points, balanced_tree=False, compact_nodes=False)
+        self.tree = cKDTree(self.points, leafsize=32, balanced_tree=False, compact_nodes=False)
 
     def __len__(self) -> int:
         return len(self.points)

@@ -12,6 +12,7 @@ world being the first frame's LiDAR frame. The velocity is the last frame-to-fra
 
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -52,6 +53,9 @@ class OdometryConfig:
     keyframe_distance: float = 2.0  # m between keyframes
     keyframe_angle_deg: float = 15.0
     max_keyframes: int = 10  # local map size
+    # Padded sizes (and so JAX compilations) may grow during these first frames only; later
+    # scans with more points than their padded size are thinned evenly to fit it.
+    warmup_frames: int = 20
     degeneracy_threshold: float = 2e-4  # see weak_directions
     lever_arm: float = 10.0  # m: how rotation (rad) compares with translation in weak_directions
     gicp: GICPConfig = field(default_factory=GICPConfig)
@@ -63,6 +67,7 @@ class FrameStatus:
 
     num_points: int = 0  # after cleaning, cropping and downsampling
     num_dropped: int = 0  # NaN / inf points removed
+    num_thinned: int = 0  # points left out to fit the padded size fixed after the warm-up
     iterations: int = 0
     num_inliers: int = 0
     converged: bool = False
@@ -115,13 +120,16 @@ def preprocess_scan(
     features: np.ndarray | None = None,
     buckets: pc.StickyBuckets | None = None,
     source: str | None = None,
-) -> tuple[np.ndarray, np.ndarray | None, int]:
+) -> tuple[np.ndarray, np.ndarray | None, int, int]:
     """One raw scan (N, 3+) -> its voxel centres (M, 3) float64, deskewed with ``velocity``
     (se(3) per ``frame_dt``; None: not deskewed), their PCA features (M, 6) when ``model`` is
-    given (from the backbone's ``features`` (N, D)), and the number of NaN / inf points dropped.
+    given (from the backbone's ``features`` (N, D)), the number of NaN / inf points dropped
+    and the number of voxel centres thinned out.
 
-    ``times`` (N,) s from the reference time, or None for times from the azimuth. Raises
-    InputError for scans without points in range and for features of the wrong length.
+    ``times`` (N,) s from the reference time, or None for times from the azimuth. ``buckets``
+    size the deskew's padding (role "scan"); once frozen, centres beyond their limit are
+    thinned evenly along the voxel order (so evenly in space). Raises InputError for scans
+    without points in range and for features of the wrong length.
     """
     keep, dropped = pc.range_mask(scan, config.min_range, config.max_range, source)
     points = scan[keep, :3].astype(np.float64)
@@ -138,40 +146,67 @@ def preprocess_scan(
     # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
     # few voxel centres with their mean time; features are averaged per voxel alike.
     columns = pc.voxel_means(points, config.downsampling_resolution, columns)
+    limit = None if buckets is None else buckets.limit("scan")
+    thinned = 0
+    if limit is not None and len(columns[0]) > limit:
+        thinned = len(columns[0]) - limit
+        rows = np.linspace(0, len(columns[0]) - 1, limit).round().astype(np.int64)
+        columns = [c[rows] for c in columns]
     reduced, pca = columns[0], (columns[1] if model is not None else None)
     points = reduced[:, :3]
     if config.deskew and velocity is not None:
-        size = None if buckets is None else buckets("deskew", len(points))
+        size = None if buckets is None else buckets("scan", len(points))
         points = deskew(points, reduced[:, 3], velocity, frame_dt, size)
-    return points, pca, dropped
+    return points, pca, dropped, thinned
 
 
 class LocalMap:
-    """The last keyframes, in the world frame, merged into one prepared cloud."""
+    """The last keyframes, in the world frame, merged into one prepared cloud.
 
-    def __init__(self, max_keyframes: int) -> None:
+    Merging (concatenation, k-d tree, padded device arrays) runs on a worker thread: the next
+    frame's preprocessing is mostly single-threaded NumPy, so the tree build overlaps it on
+    another core instead of adding to the frame's time (scipy builds trees without the GIL).
+    """
+
+    def __init__(self, max_keyframes: int, buckets: pc.StickyBuckets) -> None:
         self.max_keyframes = max_keyframes
+        self.buckets = buckets
         # (points, covariances, association features or None), in the world frame
         self.keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
-        self.cloud: PreparedCloud | None = None
         self.last_pose: np.ndarray | None = None
+        self.size = 0  # rows of the padded map
+        self._merged: PreparedCloud | None = None
+        self._pending: Future | None = None
+        # One worker: merges run in the order of their keyframes.
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="local-map")
 
     def add(self, cloud: PreparedCloud, T_world_lidar: np.ndarray) -> None:
         R, t = T_world_lidar[:3, :3], T_world_lidar[:3, 3]
         self.keyframes.append((cloud.points @ R.T + t, R @ cloud.covs @ R.T, cloud.features))
         self.keyframes = self.keyframes[-self.max_keyframes :]
-        points = np.concatenate([k[0] for k in self.keyframes])
-        covs = np.concatenate([k[1] for k in self.keyframes])
-        features = (
-            None if cloud.features is None else np.concatenate([k[2] for k in self.keyframes])
-        )
-        self.cloud = PreparedCloud(points, covs, KdTree(points, "local map"), features)
+        # Padding the map to its capacity once full, keyframes at the scans' padded size, keeps
+        # its shape, and so the solver's, fixed. Sized here: StickyBuckets is not thread-safe.
+        largest = max(len(k[0]) for k in self.keyframes)
+        self.size = self.max_keyframes * self.buckets("scan", largest)
+        self._pending = self._worker.submit(_merge, list(self.keyframes), self.size)
         self.last_pose = T_world_lidar
 
-    def capacity(self) -> int:
-        """Points the map will hold once full, at the largest keyframe so far: padding the
-        map to this from the start keeps its shape, and so the solver's, fixed."""
-        return self.max_keyframes * max(len(k[0]) for k in self.keyframes)
+    @property
+    def cloud(self) -> PreparedCloud | None:
+        """The merged map (waits for its merge), or None before the first keyframe."""
+        if self._pending is not None:
+            self._merged, self._pending = self._pending.result(), None
+        return self._merged
+
+
+def _merge(keyframes: list, size: int) -> PreparedCloud:
+    """One prepared cloud of world-frame keyframes, its device arrays padded to ``size``."""
+    points = np.concatenate([k[0] for k in keyframes])
+    covs = np.concatenate([k[1] for k in keyframes])
+    features = None if keyframes[0][2] is None else np.concatenate([k[2] for k in keyframes])
+    cloud = PreparedCloud(points, covs, KdTree(points, "local map"), features)
+    cloud.padded(size)
+    return cloud
 
 
 def _needs_keyframe(last: np.ndarray | None, T: np.ndarray, config: OdometryConfig) -> bool:
@@ -227,9 +262,9 @@ class Odometry:
         self.poses: list[np.ndarray] = []
         self.status: list[FrameStatus] = []
         self.velocity = np.zeros(6)  # se(3) motion per frame interval
-        self.map = LocalMap(config.max_keyframes)
         self.previous: PreparedCloud | None = None
         self.buckets = pc.StickyBuckets()
+        self.map = LocalMap(config.max_keyframes, self.buckets)
 
     def _predict(self) -> np.ndarray:
         if not self.poses:
@@ -244,9 +279,9 @@ class Odometry:
         status,
         source: str | None,
         features: np.ndarray | None,
-    ) -> PreparedCloud:
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         cfg = self.config
-        points, pca, status.num_dropped = preprocess_scan(
+        points, pca, status.num_dropped, status.num_thinned = preprocess_scan(
             scan,
             times,
             cfg,
@@ -257,9 +292,7 @@ class Odometry:
             buckets=self.buckets,
             source=source,
         )
-        return build_cloud(
-            points, cfg.num_neighbors, cfg.regularizer, source, self.buckets, pca, self.learned
-        )
+        return points, pca
 
     def register_frame(
         self,
@@ -283,24 +316,30 @@ class Odometry:
         cfg, status = self.config, FrameStatus()
         if self.needs_features and features is None:
             raise InputError(source, f"method '{cfg.method}' needs per-point features")
+        if len(self.poses) == cfg.warmup_frames:
+            self.buckets.freeze()
         T_pred = self._predict()
         try:
-            cloud = self._preprocess(scan, times, frame_dt, status, source, features)
+            points, pca = self._preprocess(scan, times, frame_dt, status, source, features)
+            scan_size = self.buckets("scan", len(points))
+            cloud = build_cloud(
+                points, cfg.num_neighbors, cfg.regularizer, source, scan_size, pca, self.learned
+            )
         except InputError as err:
             status.error = str(err)
             return self._accept(T_pred, None, status)
         status.num_points = len(cloud.points)
+        # Taken only now: the map's merge ran beside this frame's preprocessing.
         target = self.previous if cfg.mode == "frame_to_frame" else self.map.cloud
         if target is None:  # first usable scan (earlier ones, if any, were bad): it anchors
             return self._accept(T_pred, cloud, status)
         # Registration in the target's frame: the previous scan's, or the world (local map).
         if cfg.mode == "frame_to_frame":
-            T_world_target = self.poses[-1]
+            T_world_target, sizes = self.poses[-1], (scan_size, scan_size)
             prior = np.asarray(geo.se3_exp_jit(self.velocity), dtype=np.float64)
         else:
-            T_world_target, prior = np.eye(4), T_pred
-            self.buckets("target", self.map.capacity())
-        result = align_prepared(target, cloud, prior, cfg.gicp, self.buckets)
+            T_world_target, sizes, prior = np.eye(4), (scan_size, self.map.size), T_pred
+        result = align_prepared(target, cloud, prior, cfg.gicp, sizes)
         status.iterations, status.num_inliers = result.iterations, result.num_inliers
         status.converged = result.converged
         T = result.T_target_source

@@ -102,6 +102,7 @@ def write_run(seq: io.KittiSequence, odometry: Odometry, config: OdometryConfig,
         "degenerate_frames": [i for i, s in enumerate(flags) if s["degenerate"]],
         "bad_input_frames": {i: s["error"] for i, s in enumerate(flags) if s["error"]},
         "dropped_invalid_points": int(sum(s["num_dropped"] for s in flags)),
+        "thinned_points": int(sum(s["num_thinned"] for s in flags)),
     }
     gt = seq.gt_poses_cam
     if gt is not None:

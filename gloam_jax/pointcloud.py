@@ -71,12 +71,13 @@ def _voxel_groups(
     if dims[0] * dims[1] * dims[2] >= 1 << 62:
         raise ValueError(f"points spanning {dims} voxels of {voxel_size} m cannot be voxelised")
     x, y, z = ((c - lo).astype(np.int64) for c, lo in zip(cells, lows, strict=True))
-    # One integer per voxel in mixed radix keeps the (x, y, z) order; a stable sort of 32-bit
-    # keys (most scans) is several times faster than np.unique on 64-bit ones.
+    # One integer per voxel in mixed radix keeps the (x, y, z) order. NumPy's default argsort
+    # of 32-bit keys (most scans) is vectorised: 2.5x faster than a stable sort and several
+    # times faster than np.unique on 64-bit keys; the order within a voxel does not matter.
     key = (x * dims[1] + y) * dims[2] + z
     if dims[0] * dims[1] * dims[2] < 1 << 32:
         key = key.astype(np.uint32)
-    order = np.argsort(key, kind="stable")
+    order = np.argsort(key)
     sorted_key = key[order]
     starts = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
     counts = np.diff(np.r_[starts, len(key)])
@@ -124,19 +125,30 @@ def bucket_size(n: int, buckets: tuple[int, ...] = BUCKETS) -> int:
 
 
 class StickyBuckets:
-    """Bucket sizes that never shrink, per role ("source", "target", ...): once a stream of
-    scans has warmed up, shapes, and so compilations, stop changing."""
+    """Bucket sizes that never shrink, per role ("scan", ...): once a stream of scans has
+    warmed up, shapes, and so compilations, stop changing. Once :meth:`freeze` is called they
+    no longer grow either; callers fit larger inputs to :meth:`limit`."""
 
     def __init__(self) -> None:
         self._floor: dict[str, int] = {}
+        self._frozen = False
 
     def __call__(self, role: str, n: int) -> int:
         floor = self._floor.get(role, 0)
         if n > floor:
+            if self._frozen:
+                raise ValueError(f"{n} {role} rows exceed the frozen padded size {floor}")
             # 20 % headroom over the largest seen: scans vary by a few percent, and each
             # growth step costs a compilation.
             floor = self._floor[role] = bucket_size(int(n * 1.2))
         return floor
+
+    def freeze(self) -> None:
+        self._frozen = True
+
+    def limit(self, role: str) -> int | None:
+        """The most rows ``role`` takes once frozen; None while sizes may still grow."""
+        return self._floor.get(role) if self._frozen else None
 
 
 def pad(array: np.ndarray, size: int, fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -166,7 +166,7 @@ def test_analytic_gauss_newton_matches_autodiff(num_partners):
     """Hard partners (one each) and soft ones (three, with weights)."""
     import jax.numpy as jnp
 
-    from gloam_jax.gicp import Cloud, Partners, _residuals, gauss_newton_system
+    from gloam_jax.gicp import Cloud, Partners, _residuals, gauss_newton_system, make_pairs
 
     rng = np.random.default_rng(4)
     n = 64
@@ -186,7 +186,9 @@ def test_analytic_gauss_newton_matches_autodiff(num_partners):
     weights = rng.uniform(0.1, 1.0, size=index.shape) if num_partners > 1 else np.ones((n, 1))
     partners = Partners(jnp.asarray(index, jnp.int32), jnp.asarray(np.sqrt(weights), jnp.float32))
     T = jnp.asarray(geo.se3_exp(np.array([0.01, -0.02, 0.03, 0.02, -0.01, 0.015])), jnp.float32)
-    args = (T, source, target, partners, jnp.float32(100.0))
+    # Weights at a rotation other than T's: the system holds them fixed, whatever they are.
+    R_weights = jnp.asarray(geo.so3_exp(np.array([0.1, 0.0, -0.05])), jnp.float32)
+    args = (T, make_pairs(R_weights, source, target, partners), jnp.float32(100.0))
     H, b, error, inliers = gauss_newton_system(*args)
     J = jax.jacfwd(lambda xi: _residuals(xi, args).reshape(-1))(jnp.zeros(6))
     e = _residuals(jnp.zeros(6), args).reshape(-1)

@@ -74,6 +74,31 @@ def corridor(seed: int, length: float = 200.0, n: int = 30000) -> np.ndarray:
     return np.c_[x, y, z]
 
 
+def test_sizes_are_fixed_after_the_warm_up_and_denser_scans_thinned(sim_sequence):
+    seq = io.KittiSequence(sim_sequence, "00")
+    # Scan 3 with copies of itself 0.25 m above and below (voxels of 0.5 m): more centres,
+    # the surfaces thicker but not moved.
+    scan = seq.scan(3)
+    up = np.zeros(scan.shape[1], scan.dtype)
+    up[2] = 0.25
+    denser = np.vstack([scan, scan + up, scan - up])
+    runs = {}
+    for warmup in (2, 100):  # frozen before the denser scan, or still growing
+        odometry = Odometry(OdometryConfig(warmup_frames=warmup))
+        for i in range(3):
+            odometry.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+        limit = odometry.buckets.limit("scan")
+        T = odometry.register_frame(denser, np.tile(seq.point_times(3), 3), 0.1)
+        runs[warmup] = (limit, T, odometry.status[-1], odometry.map.size)
+    limit, T_frozen, frozen, map_size = runs[2]
+    _, T_growing, growing, _ = runs[100]
+    assert runs[100][0] is None and growing.num_thinned == 0
+    assert growing.num_points > limit  # the denser scan outgrows the frozen size ...
+    assert frozen.num_points == limit and frozen.num_thinned == growing.num_points - limit
+    assert map_size == 10 * limit and not frozen.error  # ... which stays, the scan thinned
+    np.testing.assert_allclose(T_frozen, T_growing, atol=0.02)
+
+
 def test_degenerate_corridor_is_flagged_and_remapped():
     target = prepare(corridor(0))
     T_true = np.eye(4)

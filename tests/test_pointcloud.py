@@ -58,6 +58,11 @@ def test_range_mask_and_buckets():
     sticky = pc.StickyBuckets()
     assert sticky("source", 1000) == pc.bucket_size(1200)
     assert sticky("source", 500) == pc.bucket_size(1200)  # never shrinks
+    assert sticky.limit("source") is None
+    sticky.freeze()
+    assert sticky.limit("source") == pc.bucket_size(1200) == sticky("source", 1100)
+    with pytest.raises(ValueError, match="frozen"):
+        sticky("source", 5000)
     padded, mask = pc.pad(np.ones((3, 2)), 5)
     assert padded.shape == (5, 2) and mask.tolist() == [True] * 3 + [False] * 2
 
