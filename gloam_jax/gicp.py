@@ -14,7 +14,9 @@ the information on the sensor's position (m) and attitude (rad).
 
 The residual of a pair is ``b - T a``, whitened by the Cholesky factor of
 ``C_b + R C_a R^T`` (Segal et al., 2009), so the squared norm is the Mahalanobis distance.
-Pairs farther apart than ``max_correspondence_distance`` are dropped.
+Pairs farther apart than ``max_correspondence_distance`` are dropped. Within a round the
+pairs, their weights and inliers are fixed, so the round's cost is an exact quadratic form in
+``(rho, exp(phi) - I)``, summed once (:func:`round_cost`): LM works on 12 residuals.
 """
 
 from __future__ import annotations
@@ -299,13 +301,49 @@ def retract_host(xi: np.ndarray, T0: np.ndarray) -> np.ndarray:
     return T
 
 
-def _residuals(xi: Array, args) -> Array:
+class RoundCost(NamedTuple):
+    """A round's cost as a quadratic form: ``|L^T g - u|^2`` equals the sum of squared
+    whitened residuals up to a constant, with ``g = (rho, s vec(exp(phi) - I))`` (12,):
+    L (12, 12) lower triangular, u (12,), s the scale of the rotated source points (m)."""
+
+    L: Array
+    u: Array
+    s: Array
+
+
+def round_cost(T0, pairs: Pairs, max_d2) -> RoundCost:
+    """The :class:`RoundCost` of the pairs from T0, inliers those closer than sqrt(max_d2).
+
+    With pairs, weights and inliers fixed, a pair's residual is ``r0 - rho - (exp(phi) - I) q``
+    (q = R0 a, r0 its residual at T0), linear in ``g``: the cost ``sum |W r|^2`` is exactly
+    ``c - 2 h.g + g.G g``. G (12, 12) and h are summed once; LM then works on 12 residuals
+    instead of 3N. ``s`` balances G's blocks (rotations move points s metres from the sensor);
+    ten machine epsilons of its mean eigenvalue on the diagonal keep the Cholesky factor
+    finite (no inliers, coplanar points).
+    """
+    q = pairs.a @ T0[:3, :3].T
+    r0 = pairs.b - (q + T0[:3, 3])[:, None, :]
+    inlier = pairs.valid & (jnp.sum(r0 * r0, axis=-1) < max_d2)
+    W = jnp.where(inlier[..., None, None], pairs.W, 0.0)
+    M = jnp.einsum("njca,njcb->njab", W, W)  # W^T W: the pair's information (N, J, 3, 3)
+    count = jnp.sum(inlier, axis=1).astype(q.dtype)
+    mean_sq = jnp.sum(count * jnp.sum(q * q, axis=-1)) / jnp.maximum(jnp.sum(count), 1.0)
+    s = jax.lax.stop_gradient(jnp.sqrt(mean_sq) + 1e-3)
+    v = jnp.concatenate([jnp.ones_like(q[:, :1]), q / s], axis=1)  # r = r0 - (v kron I) g
+    G = jnp.einsum("ni,nk,njab->iakb", v, v, M).reshape(12, 12)
+    h = jnp.einsum("ni,na->ia", v, jnp.einsum("njab,njb->na", M, r0)).reshape(12)
+    jitter = 10 * jnp.finfo(G.dtype).eps * jnp.trace(G) / 12 + jnp.finfo(G.dtype).tiny
+    L = jnp.linalg.cholesky(G + jitter * jnp.eye(12, dtype=G.dtype))
+    return RoundCost(L, jax.scipy.linalg.solve_triangular(L, h, lower=True), s)
+
+
+def _residuals(xi: Array, cost: RoundCost) -> Array:
     # The weights hold the round's starting rotation, as GICP holds them fixed within a
-    # linearisation: the whitening is computed once per round (several times cheaper steps),
-    # and, being constant in xi rather than cut by stop_gradient, the residual is exactly the
-    # function LM minimises, so gradients through the solve are exact too.
-    T0, pairs, max_d2 = args
-    return _whitened(retract(xi, T0), pairs, max_d2)[0]
+    # linearisation; being constant in xi rather than cut by stop_gradient, this is exactly
+    # the function LM minimises, so gradients through the solve are exact too.
+    E = geo.so3_exp(xi[3:]) - jnp.eye(3, dtype=xi.dtype)
+    g = jnp.concatenate([xi[:3], cost.s * E.T.reshape(9)])  # vec: E's columns in order
+    return cost.L.T @ g - cost.u
 
 
 _ADJOINTS = {"unrolled": optx.RecursiveCheckpointAdjoint(), "implicit": optx.ImplicitAdjoint()}
@@ -332,13 +370,12 @@ def gauss_newton_system(T, pairs: Pairs, max_d2):
 
 def _lm(T0, pairs: Pairs, max_d2, inner_steps, adjoint):
     """A few LM steps from T0 with fixed pairs: the increment xi (6,)."""
-    # The normal equations (6 x 6) are much cheaper than a QR of the (3N x 6) Jacobian.
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
     sol = optx.least_squares(
         _residuals,
         solver,
         jnp.zeros(6, T0.dtype),
-        (T0, pairs, max_d2),
+        round_cost(T0, pairs, max_d2),
         max_steps=inner_steps,
         adjoint=_ADJOINTS[adjoint],
         throw=False,

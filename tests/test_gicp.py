@@ -166,7 +166,7 @@ def test_analytic_gauss_newton_matches_autodiff(num_partners):
     """Hard partners (one each) and soft ones (three, with weights)."""
     import jax.numpy as jnp
 
-    from gloam_jax.gicp import Cloud, Partners, _residuals, gauss_newton_system, make_pairs
+    from gloam_jax.gicp import Cloud, Partners, _whitened, gauss_newton_system, make_pairs, retract
 
     rng = np.random.default_rng(4)
     n = 64
@@ -190,12 +190,60 @@ def test_analytic_gauss_newton_matches_autodiff(num_partners):
     R_weights = jnp.asarray(geo.so3_exp(np.array([0.1, 0.0, -0.05])), jnp.float32)
     args = (T, make_pairs(R_weights, source, target, partners), jnp.float32(100.0))
     H, b, error, inliers = gauss_newton_system(*args)
-    J = jax.jacfwd(lambda xi: _residuals(xi, args).reshape(-1))(jnp.zeros(6))
-    e = _residuals(jnp.zeros(6), args).reshape(-1)
+
+    def residuals(xi):
+        return _whitened(retract(xi, T), *args[1:])[0].reshape(-1)
+
+    J = jax.jacfwd(residuals)(jnp.zeros(6))
+    e = residuals(jnp.zeros(6))
     np.testing.assert_allclose(H, J.T @ J, rtol=2e-4, atol=1e-3)
     np.testing.assert_allclose(b, J.T @ e, rtol=2e-4, atol=1e-4)
     assert float(error) == pytest.approx(float(e @ e), rel=1e-5)
     assert int(inliers) == n * num_partners
+
+
+def test_round_cost_is_the_sum_of_squared_whitened_residuals():
+    """|L^T g(xi) - u|^2 differs from sum |W (b - T a)|^2 by a constant, for any increment."""
+    import jax.numpy as jnp
+
+    from gloam_jax.gicp import (
+        Cloud,
+        Partners,
+        _residuals,
+        _whitened,
+        make_pairs,
+        retract,
+        round_cost,
+    )
+
+    rng = np.random.default_rng(5)
+    n = 200
+    jax.config.update("jax_enable_x64", True)
+    try:
+        a = rng.uniform(-40, 40, (n, 3))
+        A = rng.normal(size=(n, 3, 3))
+        covs = A @ A.transpose(0, 2, 1) + 0.05 * np.eye(3)
+        none = jnp.zeros((n, 0))
+        source = Cloud(jnp.asarray(a), jnp.asarray(covs), jnp.ones(n, bool), none)
+        target = Cloud(jnp.asarray(a + rng.normal(0, 0.1, (n, 3))), jnp.asarray(covs[::-1]),
+                       jnp.ones(n, bool), none)  # fmt: skip
+        partners = Partners(jnp.arange(n)[:, None], jnp.ones((n, 1)))
+        T0 = jnp.asarray(geo.se3_exp(np.array([500.0, -20.0, 3.0, 0.01, 0.02, -0.5])))
+        target = target._replace(points=target.points @ T0[:3, :3].T + T0[:3, 3])
+        pairs = make_pairs(T0[:3, :3], source, target, partners)
+        cost = round_cost(T0, pairs, 1e6)
+
+        def both(xi):
+            xi = jnp.asarray(xi)
+            e = _whitened(retract(xi, T0), pairs, 1e6)[0]
+            return float(jnp.sum(_residuals(xi, cost) ** 2)), float(jnp.sum(e * e))
+
+        form0, exact0 = both(np.zeros(6))
+        for xi in rng.normal(0, [0.3, 0.3, 0.3, 0.02, 0.02, 0.02], (5, 6)):
+            form, exact = both(xi)
+            assert form - form0 == pytest.approx(exact - exact0, rel=1e-9)
+    finally:
+        jax.config.update("jax_enable_x64", False)
 
 
 def test_runs_in_float64_mode_too():
