@@ -73,6 +73,7 @@ def run_ours(seq: io.KittiSequence, n: int, config_path: Path, weights: Path | N
         "compiles_after_frame_20": counter.count - late_compiles if n > 20 else None,
         "rounds_per_frame": float(np.mean([s.iterations for s in odometry.status[1:]])),
         "degenerate_frames": int(sum(s.degenerate for s in odometry.status)),
+        "thinned_points": int(sum(s.num_thinned for s in odometry.status)),
     }
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
