@@ -443,7 +443,10 @@ def align_prepared(
     max_d2 = jnp.asarray(config.max_correspondence_distance**2, dtype=_real())
     converged, iterations = False, 0
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007
-        cand, valid = find_candidates(target, source.points, T, config)
+        moved = source.points @ T[:3, :3].T + T[:3, 3]
+        cand, valid = target.tree.query(
+            moved, config.num_candidates, config.max_correspondence_distance
+        )
         cand, valid = pc.pad(cand, size)[0], pc.pad(valid, size)[0]
         _, xi, system = solve_round(
             jnp.asarray(T, dtype=_real()),
@@ -468,15 +471,6 @@ def align_prepared(
             converged = True
             break
     return RegistrationResult(T, converged, iterations, int(inliers), H, b, float(error))
-
-
-def find_candidates(
-    target: PreparedCloud, points: np.ndarray, T_target_source: np.ndarray, config: GICPConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """The ``config.num_candidates`` nearest target points of source points (N, 3) at
-    ``T_target_source``, within the correspondence distance: ((N, K) indices, (N, K) mask)."""
-    moved = points @ T_target_source[:3, :3].T + T_target_source[:3, 3]
-    return target.tree.query(moved, config.num_candidates, config.max_correspondence_distance)
 
 
 def _largest_shift(T_from: np.ndarray, T_to: np.ndarray, radius: float) -> float:
