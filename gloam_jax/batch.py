@@ -111,6 +111,10 @@ class PairSet(NamedTuple):
     T_init: Array
 
 
+# The PairSet fields with a row per source point (axis 1), which a subset of rows slices.
+ROW_FIELDS = ("rows", "row_mask", "candidates", "slots", "valid")
+
+
 @dataclass(frozen=True)
 class Window:
     """One window's bookkeeping: its pairs are ``pairs[start:stop]``; ground truth in the

@@ -120,9 +120,11 @@ def test_tpe_runs_resumes_and_exports(sim_sequence, tmp_path, model):
     assert trained.provenance["trials"] == 3 and (run / "loss_curve.png").stat().st_size > 0
 
 
-def test_grad_runs_and_resumes_to_the_same_weights(sim_sequence, tmp_path, model):
-    cfg = _config(sim_sequence, tmp_path, model, mode="grad",
-                  grad=GradConfig(steps=2, eval_every=1, learning_rate=0.01))  # fmt: skip
+@pytest.mark.parametrize("source_points", [None, 64])
+def test_grad_runs_and_resumes_to_the_same_weights(sim_sequence, tmp_path, model, source_points):
+    """Also with a random subset of source points per step: a resumed run repeats them."""
+    grad = GradConfig(steps=2, eval_every=1, learning_rate=0.01, source_points=source_points)
+    cfg = _config(sim_sequence, tmp_path, model, mode="grad", grad=grad)
     cache = tmp_path / "cache"
     straight = train_grad(setup(cfg, tmp_path / "a", cache_dir=cache))
     with pytest.raises(Interrupt):
@@ -138,6 +140,13 @@ def test_grad_runs_and_resumes_to_the_same_weights(sim_sequence, tmp_path, model
     assert all(np.isfinite(h["t_err"]) for h in history)
     assert np.isfinite(history[-1]["soft_loss"])
     assert load_model(tmp_path / "b" / "model.npz").provenance["steps"] == 2
+
+
+def test_grad_source_points_must_be_positive():
+    from gloam_jax.errors import InputError
+
+    with pytest.raises(InputError, match="source_points must be >= 1"):
+        GradConfig(source_points=0)
 
 
 def test_cli_train_and_a_changed_config(sim_sequence, tmp_path, model):

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from gloam_jax.batch import BatchConfig
+from gloam_jax.errors import InputError
 from gloam_jax.odometry import OdometryConfig
 from gloam_jax.training.protocol import TRAIN_SEQUENCES
 
@@ -35,6 +36,13 @@ class GradConfig:
     clip_norm: float = 1.0  # global gradient norm clip
     eval_every: int = 2  # steps between hard-association evaluations of the training loss
     checkpoint_every: int = 1  # steps between checkpoints
+    # Source points per pair in a step: a fresh random subset of the prepared ones each step
+    # (stochastic gradients, cheaper steps); None: all. Evaluations always use all.
+    source_points: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.source_points is not None and self.source_points < 1:
+            raise InputError(None, f"grad.source_points must be >= 1, not {self.source_points}")
 
 
 @dataclass(frozen=True)

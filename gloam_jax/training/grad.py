@@ -5,7 +5,9 @@ The loss is :func:`gloam_jax.batch.loss` (Eq. 8 over the training windows, frame
 with the batch settings of the run: soft association gives the conversion MLP a gradient
 through the choice among candidates; ``adjoint`` picks optimistix's unrolled
 (``RecursiveCheckpointAdjoint``) or implicit (``ImplicitAdjoint``) differentiation of the LM
-solves. Steps with a non-finite loss or gradient are skipped. Every ``eval_every`` steps the
+solves. With ``source_points``, each step sees a fresh random subset of every pair's source
+points (seeded by the run's seed and the step, so a resumed run repeats them). Steps with a
+non-finite loss or gradient are skipped. Every ``eval_every`` steps the
 training loss is measured as TPE measures it (hard association), and the best weights by that
 number are kept. Checkpoints are written atomically; a rerun in the same folder resumes.
 """
@@ -92,8 +94,17 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
     def loss(p: Params, scans, pairs):
         return batch.loss(problem.learned(p), batch.BatchData(scans, pairs, data.windows), config)
 
+    rows = data.pairs.rows.shape[1]
+    subset = rows if cfg.source_points is None else min(cfg.source_points, rows)
+
     @jax.jit
-    def update(p, s, scans, pairs):
+    def update(p, s, scans, pairs, at):
+        if subset < rows:  # the same random row slots of every pair (their rows are random)
+            key = jax.random.fold_in(jax.random.PRNGKey(problem.config.seed), at)
+            sub = jax.random.permutation(key, rows)[:subset]
+            pairs = pairs._replace(
+                **{k: getattr(pairs, k)[:, sub] for k in batch.ROW_FIELDS}
+            )
         value, grads = jax.value_and_grad(loss)(p, scans, pairs)
         ok = jnp.isfinite(value) & _finite(grads)
         grads = jax.tree_util.tree_map(lambda g: jnp.where(ok, g, 0.0), grads)
@@ -125,7 +136,7 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
         evaluate(params, 0, None)
     soft = None
     while step < cfg.steps:
-        params, state, value, ok = update(params, state, data.scans, data.pairs)
+        params, state, value, ok = update(params, state, data.scans, data.pairs, step)
         soft = float(value) if bool(ok) else None
         step += 1
         clock.lap()
