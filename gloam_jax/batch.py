@@ -111,8 +111,10 @@ class PairSet(NamedTuple):
     T_init: Array
 
 
-# The PairSet fields with a row per source point (axis 1), which a subset of rows slices.
-ROW_FIELDS = ("rows", "row_mask", "candidates", "slots", "valid")
+def select_rows(pairs: PairSet, index: Array) -> PairSet:
+    """The same source-row slots (R,) of every pair: a PairSet with P = R."""
+    fields = ("rows", "row_mask", "candidates", "slots", "valid")  # those with a row axis
+    return pairs._replace(**{k: getattr(pairs, k)[:, index] for k in fields})
 
 
 @dataclass(frozen=True)

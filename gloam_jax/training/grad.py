@@ -101,10 +101,7 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
     def update(p, s, scans, pairs, at):
         if subset < rows:  # the same random row slots of every pair (their rows are random)
             key = jax.random.fold_in(jax.random.PRNGKey(problem.config.seed), at)
-            sub = jax.random.permutation(key, rows)[:subset]
-            pairs = pairs._replace(
-                **{k: getattr(pairs, k)[:, sub] for k in batch.ROW_FIELDS}
-            )
+            pairs = batch.select_rows(pairs, jax.random.permutation(key, rows)[:subset])
         value, grads = jax.value_and_grad(loss)(p, scans, pairs)
         ok = jnp.isfinite(value) & _finite(grads)
         grads = jax.tree_util.tree_map(lambda g: jnp.where(ok, g, 0.0), grads)
