@@ -14,13 +14,15 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from gloam_jax import geometry as geo
+
 
 def costs(a: Array, b: Array, fa: Array, fb: Array) -> Array:
     """Pair costs (N, K): a (N, 3), b (N, K, 3), fa (N, F), fb (N, K, F)."""
     # Same expression as the xyz-only association (gicp._whitened): with fa = fb = 0 the feature
     # term adds an exact 0, so the argmin is bit-identical.
-    d2 = jnp.sum((b - a[:, None, :]) ** 2, axis=-1)
-    return d2 + jnp.sum((fb - fa[:, None, :]) ** 2, axis=-1)
+    d, df = b - a[:, None, :], fb - fa[:, None, :]
+    return geo.dot(d, d) + geo.dot(df, df)
 
 
 def hard(a: Array, b: Array, fa: Array, fb: Array, valid: Array) -> Array:

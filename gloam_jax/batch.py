@@ -447,24 +447,29 @@ def stack(windows: list[dict], config: BatchConfig) -> BatchData:
 def register_pair(learned: Learned, scans: ScanSet, pair: PairSet, config: BatchConfig) -> Array:
     """One registration (``pair`` holds one row of each PairSet field): ``T_target_source``
     (4, 4) after ``config.rounds`` GICP rounds from ``pair.T_init``."""
-    P, K = pair.candidates.shape
-    # The target as just the candidate rows (P * K), so nothing of size Q is gathered per pair;
-    # each placed in the target's frame by its map slot's pose (k-NN eigenvectors rotate too).
-    flat = pair.candidates.reshape(-1)
-    T_map = pair.T_target_map[pair.slots.reshape(-1)]
-    R = T_map[:, :3, :3]
-    points = jnp.einsum("nij,nj->ni", R, scans.points.reshape(-1, 3)[flat]) + T_map[:, :3, 3]
-    vectors = R @ scans.vectors.reshape(-1, 3, 3)[flat]
-    S, Q, F = scans.pca.shape
-    pca = scans.pca.reshape(S * Q, F)[flat]
-    t_covs, t_feats = attributes(scans.values.reshape(-1, 3)[flat], vectors, pca, learned, "plane")
-    target = Cloud(points, t_covs, scans.mask.reshape(-1)[flat], t_feats)
+    # The target as just the candidate rows, so nothing of size Q is gathered per pair; each
+    # placed in the target's frame by its map slot's pose (k-NN eigenvectors rotate too), the
+    # slot's pose selected elementwise (M is small) rather than gathered per row.
+    T_map = sum(
+        jnp.where((pair.slots == m)[..., None, None], T_m, 0.0)
+        for m, T_m in enumerate(pair.T_target_map)
+    )
+    R, t = T_map[..., :3, :3], T_map[..., :3, 3]
+    S, Q = scans.mask.shape
+
+    def gather(a: Array) -> Array:  # (S, Q, ...) -> (P, K, ...)
+        return a.reshape(S * Q, *a.shape[2:])[pair.candidates]
+
+    t_covs, t_feats = attributes(
+        gather(scans.values), geo.matmul(R, gather(scans.vectors)), gather(scans.pca), learned,
+        "plane",
+    )  # fmt: skip
+    candidates = Cloud(geo.rotate(R, gather(scans.points)) + t, t_covs, pair.valid, t_feats)
     s, rows = pair.source, pair.rows
     s_covs, s_feats = attributes(
         scans.values[s, rows], scans.vectors[s, rows], scans.pca[s, rows], learned, "plane"
     )
     source = Cloud(scans.points[s, rows], s_covs, pair.row_mask & scans.mask[s, rows], s_feats)
-    local = jnp.arange(P * K, dtype=jnp.int32).reshape(P, K)
     max_d2 = jnp.asarray(config.max_correspondence_distance**2, scans.points.dtype)
     temperature = (
         jnp.asarray(config.temperature, scans.points.dtype)
@@ -474,9 +479,8 @@ def register_pair(learned: Learned, scans: ScanSet, pair: PairSet, config: Batch
     T = pair.T_init
     for _ in range(config.rounds):
         T, _, _ = gicp_round(
-            T, source, target, local, pair.valid, max_d2, config.inner_steps, config.adjoint,
-            temperature,
-        )  # fmt: skip
+            T, source, candidates, max_d2, config.inner_steps, config.adjoint, temperature
+        )
     return T
 
 

@@ -20,6 +20,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from gloam_jax import geometry as geo
+
 PLANE_EPS = 1e-3
 
 
@@ -107,7 +109,7 @@ def _complement(v: Array) -> tuple[Array, Array]:
 
 def recompose(vectors: Array, values: Array) -> Array:
     """``V diag(values) V^T``: (..., 3, 3), (..., 3) -> (..., 3, 3)."""
-    return jnp.einsum("...ij,...j,...kj->...ik", vectors, values, vectors)
+    return geo.matmul(vectors * values[..., None, :], jnp.swapaxes(vectors, -1, -2))
 
 
 def plane_values(values: Array, eps: float = PLANE_EPS) -> Array:

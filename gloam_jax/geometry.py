@@ -37,6 +37,30 @@ def _series(x: Array, coefficients: tuple[float, ...]) -> Array:
     return out
 
 
+def matmul(A: ArrayLike, B: ArrayLike) -> Array:
+    """``A @ B`` for small matrices, (..., n, k) @ (..., k, m), broadcasting: k multiply-adds
+    of broadcast columns and rows, which XLA fuses with their neighbours into one elementwise
+    loop. On the CPU, batched products of 3x3 blocks or 6-wide rows as ``dot`` ops are slow
+    library calls that stream each operand from memory (the batch's hot path is made of them)."""
+    A, B = jnp.asarray(A), jnp.asarray(B)
+    out = jnp.zeros(jnp.broadcast_shapes(A.shape[:-1] + (1,), B.shape[:-2] + (1, B.shape[-1])),
+                    jnp.result_type(A, B))  # fmt: skip
+    for i in range(A.shape[-1]):
+        out = out + A[..., :, i, None] * B[..., None, i, :]
+    return out
+
+
+def dot(a: ArrayLike, b: ArrayLike) -> Array:
+    """Inner products over the last (short) axis, (..., k) . (..., k) -> (...), broadcasting
+    (see matmul)."""
+    return matmul(jnp.asarray(a)[..., None, :], jnp.asarray(b)[..., :, None])[..., 0, 0]
+
+
+def rotate(R: ArrayLike, p: ArrayLike) -> Array:
+    """``R p`` of vectors p (..., 3) by matrices R (..., 3, 3), broadcasting (see matmul)."""
+    return matmul(R, jnp.asarray(p)[..., None])[..., 0]
+
+
 def hat(phi: ArrayLike) -> Array:
     """Skew-symmetric matrix of ``phi``: (..., 3) -> (..., 3, 3), ``hat(a) @ b == cross(a, b)``."""
     phi = jnp.asarray(phi)

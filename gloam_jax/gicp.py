@@ -223,28 +223,38 @@ def _inverse_cholesky(C: Array) -> Array:
     return jnp.stack([jnp.stack(row, axis=-1) for row in rows], axis=-2)
 
 
-class Partners(NamedTuple):
-    """Each source point's partners: target rows (N, J) and the square roots of their weights
-    (N, J). Hard association: J = 1, weight 1 (0 where a point has no candidate); soft: the
-    J = K candidates with softmax weights."""
+def candidate_cloud(target: Cloud, candidates: Array, valid: Array) -> Cloud:
+    """The (N, K) candidates of N source points as a cloud of (N, K) rows: points (N, K, 3),
+    covariances (N, K, 3, 3), mask ``valid`` (N, K), features (N, K, F)."""
+    return Cloud(target.points[candidates], target.covs[candidates], valid,
+                 target.features[candidates])  # fmt: skip
 
-    index: Array
+
+class Partners(NamedTuple):
+    """Each source point's partners: target points (N, J, 3), covariances (N, J, 3, 3) and
+    the square roots of their weights (N, J). Hard association: J = 1, weight 1 (0 where a
+    point has no candidate); soft: the J = K candidates with softmax weights."""
+
+    points: Array
+    covs: Array
     sqrt_weight: Array
 
 
-def choose_partners(
-    T: Array, source: Cloud, target: Cloud, candidates: Array, valid: Array, temperature=None
-) -> Partners:
-    """Partners among the (N, K) candidates at T: the cheapest in [xyz, f] space
-    (``temperature`` None) or all of them, softmax-weighted (see association.soft)."""
-    a = source.points @ T[:3, :3].T + T[:3, 3]
-    b, fb = target.points[candidates], target.features[candidates]
+def choose_partners(T: Array, source: Cloud, candidates: Cloud, temperature=None) -> Partners:
+    """Partners among the (N, K) ``candidates`` (see :func:`candidate_cloud`) at T: the
+    cheapest in [xyz, f] space (``temperature`` None) or all of them, softmax-weighted (see
+    association.soft)."""
+    a = geo.rotate(T[:3, :3], source.points) + T[:3, 3]
+    b, fb, valid = candidates.points, candidates.features, candidates.mask
     if temperature is None:
         j = association.hard(a, b, source.features, fb, valid)[:, None]
-        index = jnp.take_along_axis(candidates, j, axis=1)
-        return Partners(index, jnp.take_along_axis(valid, j, axis=1).astype(a.dtype))
+        return Partners(
+            jnp.take_along_axis(b, j[..., None], axis=1),
+            jnp.take_along_axis(candidates.covs, j[..., None, None], axis=1),
+            jnp.take_along_axis(valid, j, axis=1).astype(a.dtype),
+        )
     log_w = association.log_soft(a, b, source.features, fb, valid, temperature)
-    return Partners(candidates, jnp.exp(0.5 * log_w))
+    return Partners(b, candidates.covs, jnp.exp(0.5 * log_w))
 
 
 class Pairs(NamedTuple):
@@ -259,21 +269,21 @@ class Pairs(NamedTuple):
     valid: Array
 
 
-def make_pairs(R: Array, source: Cloud, target: Cloud, partners: Partners) -> Pairs:
+def make_pairs(R: Array, source: Cloud, partners: Partners) -> Pairs:
     """The :class:`Pairs` of ``partners``, weights taken at the rotation R (3, 3)."""
-    C = target.covs[partners.index] + (R @ source.covs @ R.T)[:, None]
+    C = partners.covs + geo.matmul(geo.matmul(R, source.covs), R.T)[:, None]
     W = _inverse_cholesky(C) * partners.sqrt_weight[..., None, None]
     valid = source.mask[:, None] & (partners.sqrt_weight > 0)
-    return Pairs(source.points, target.points[partners.index], W, valid)
+    return Pairs(source.points, partners.points, W, valid)
 
 
 def _whitened(T: Array, pairs: Pairs, max_d2) -> tuple[Array, Array, Array]:
     """Whitened, weighted residuals ``W (b - T a)`` (N, J, 3), zero for outliers (pairs
     farther apart than sqrt(max_d2)), the inlier mask (N, J) and the moved points T a (N, 3)."""
-    moved = pairs.a @ T[:3, :3].T + T[:3, 3]
+    moved = geo.rotate(T[:3, :3], pairs.a) + T[:3, 3]
     r = pairs.b - moved[:, None, :]
-    inlier = pairs.valid & (jnp.sum(r * r, axis=-1) < max_d2)
-    e = jnp.einsum("njab,njb->nja", pairs.W, r)
+    inlier = pairs.valid & (geo.dot(r, r) < max_d2)
+    e = geo.rotate(pairs.W, r)
     return jnp.where(inlier[..., None], e, 0.0), inlier, moved
 
 
@@ -321,11 +331,11 @@ def round_cost(T0, pairs: Pairs, max_d2) -> RoundCost:
     ten machine epsilons of its mean eigenvalue on the diagonal keep the Cholesky factor
     finite (no inliers, coplanar points).
     """
-    q = pairs.a @ T0[:3, :3].T
+    q = geo.rotate(T0[:3, :3], pairs.a)
     r0 = pairs.b - (q + T0[:3, 3])[:, None, :]
-    inlier = pairs.valid & (jnp.sum(r0 * r0, axis=-1) < max_d2)
+    inlier = pairs.valid & (geo.dot(r0, r0) < max_d2)
     W = jnp.where(inlier[..., None, None], pairs.W, 0.0)
-    M = jnp.einsum("njca,njcb->njab", W, W)  # W^T W: the pair's information (N, J, 3, 3)
+    M = geo.matmul(jnp.swapaxes(W, -1, -2), W)  # the pair's information (N, J, 3, 3)
     count = jnp.sum(inlier, axis=1).astype(q.dtype)
     mean_sq = jnp.sum(count * jnp.sum(q * q, axis=-1)) / jnp.maximum(jnp.sum(count), 1.0)
     s = jax.lax.stop_gradient(jnp.sqrt(mean_sq) + 1e-3)
@@ -386,23 +396,22 @@ def _lm(T0, pairs: Pairs, max_d2, inner_steps, adjoint):
 def gicp_round(
     T0,
     source: Cloud,
-    target: Cloud,
-    candidates,
-    valid,
+    candidates: Cloud,
     max_d2,
     inner_steps: int,
     adjoint: str = "unrolled",
     temperature=None,
 ) -> tuple[Array, Array, Pairs]:
-    """One outer round, traceable (jit, vmap, grad): partners at T0, then LM from T0.
+    """One outer round, traceable (jit, vmap, grad): partners among the (N, K)
+    ``candidates`` (:func:`candidate_cloud`) at T0, then LM from T0.
 
     Returns T (4, 4), the increment xi (6,) with ``T = retract(xi, T0)`` and the pairs.
     Partners are chosen among the candidates once, at T0, and held through the LM steps:
     re-choosing by distance inside LM would change the Mahalanobis cost in jumps that its
     trust region rejects.
     """
-    partners = choose_partners(T0, source, target, candidates, valid, temperature)
-    pairs = make_pairs(T0[:3, :3], source, target, partners)
+    partners = choose_partners(T0, source, candidates, temperature)
+    pairs = make_pairs(T0[:3, :3], source, partners)
     xi = _lm(T0, pairs, max_d2, inner_steps, adjoint)
     return retract(xi, T0), xi, pairs
 
@@ -420,7 +429,8 @@ def solve_round(
 ) -> tuple[Array, Array, tuple]:
     """:func:`gicp_round` with hard association, then :func:`gauss_newton_system`'s
     (H, b, error, inliers) at the result, whose step decides convergence."""
-    T, xi, pairs = gicp_round(T0, source, target, candidates, valid, max_d2, inner_steps, adjoint)
+    candidates = candidate_cloud(target, candidates, valid)
+    T, xi, pairs = gicp_round(T0, source, candidates, max_d2, inner_steps, adjoint)
     return T, xi, gauss_newton_system(T, pairs, max_d2)
 
 

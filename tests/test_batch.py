@@ -60,7 +60,8 @@ def test_evaluator_errors_match_the_loss(data):
 
     result = batch.Evaluator(data, CONFIG)(Learned())
     loss = float(jax.jit(lambda: batch.loss(Learned(), data, CONFIG))())
-    assert loss == pytest.approx(float(np.mean(result.t_err)), rel=1e-5)
+    # Two compiled programs, fused differently: float32 rounding through the LM solves.
+    assert loss == pytest.approx(float(np.mean(result.t_err)), rel=1e-4)
     w = data.windows[0]
     est = batch.trajectories(jax.numpy.asarray(result.T_rel), data.windows)[0]
     assert est.shape == (12, 4, 4)

@@ -184,11 +184,13 @@ def test_analytic_gauss_newton_matches_autodiff(num_partners):
     )
     index = (np.arange(n)[:, None] + np.arange(num_partners)) % n
     weights = rng.uniform(0.1, 1.0, size=index.shape) if num_partners > 1 else np.ones((n, 1))
-    partners = Partners(jnp.asarray(index, jnp.int32), jnp.asarray(np.sqrt(weights), jnp.float32))
+    partners = Partners(
+        target.points[index], target.covs[index], jnp.asarray(np.sqrt(weights), jnp.float32)
+    )
     T = jnp.asarray(geo.se3_exp(np.array([0.01, -0.02, 0.03, 0.02, -0.01, 0.015])), jnp.float32)
     # Weights at a rotation other than T's: the system holds them fixed, whatever they are.
     R_weights = jnp.asarray(geo.so3_exp(np.array([0.1, 0.0, -0.05])), jnp.float32)
-    args = (T, make_pairs(R_weights, source, target, partners), jnp.float32(100.0))
+    args = (T, make_pairs(R_weights, source, partners), jnp.float32(100.0))
     H, b, error, inliers = gauss_newton_system(*args)
 
     def residuals(xi):
@@ -227,10 +229,10 @@ def test_round_cost_is_the_sum_of_squared_whitened_residuals():
         source = Cloud(jnp.asarray(a), jnp.asarray(covs), jnp.ones(n, bool), none)
         target = Cloud(jnp.asarray(a + rng.normal(0, 0.1, (n, 3))), jnp.asarray(covs[::-1]),
                        jnp.ones(n, bool), none)  # fmt: skip
-        partners = Partners(jnp.arange(n)[:, None], jnp.ones((n, 1)))
         T0 = jnp.asarray(geo.se3_exp(np.array([500.0, -20.0, 3.0, 0.01, 0.02, -0.5])))
         target = target._replace(points=target.points @ T0[:3, :3].T + T0[:3, 3])
-        pairs = make_pairs(T0[:3, :3], source, target, partners)
+        partners = Partners(target.points[:, None], target.covs[:, None], jnp.ones((n, 1)))
+        pairs = make_pairs(T0[:3, :3], source, partners)
         cost = round_cost(T0, pairs, 1e6)
 
         def both(xi):
