@@ -127,7 +127,7 @@ def learned_values(eigenvalues: Array, eps: float | Array) -> Array:
     sorted ascending (the smallest goes along the normal), clamped below at ``eps`` > 0 (no
     rank drop; before the scaling, so all-zero outputs stay finite), L2-normalised."""
     values = jnp.maximum(_sort3(eigenvalues), eps)
-    return values / jnp.linalg.norm(values, axis=-1, keepdims=True)
+    return values / jnp.sqrt(geo.dot(values, values))[..., None]
 
 
 def plane(covariances: Array, eps: float = PLANE_EPS) -> Array:
@@ -153,10 +153,12 @@ def learned(covariances: Array, eigenvalues: Array, eps: float | Array) -> Array
 
 def _sort3(x: Array) -> Array:
     """Ascending sort of the last axis of length 3, elementwise (XLA's sort op is a slow
-    comparator loop on CPU): (..., 3) -> (..., 3)."""
-    low = jnp.min(x, axis=-1)
-    high = jnp.max(x, axis=-1)
-    mid = jnp.clip(jnp.sum(x, axis=-1) - low - high, low, high)  # rounding stays in order
+    comparator loop on CPU, and its reductions over 3 wide rows are library calls):
+    (..., 3) -> (..., 3)."""
+    x0, x1, x2 = x[..., 0], x[..., 1], x[..., 2]
+    low = jnp.minimum(jnp.minimum(x0, x1), x2)
+    high = jnp.maximum(jnp.maximum(x0, x1), x2)
+    mid = jnp.clip(x0 + x1 + x2 - low - high, low, high)  # rounding stays in order
     return jnp.stack([low, mid, high], axis=-1)
 
 

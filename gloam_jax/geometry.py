@@ -41,13 +41,44 @@ def matmul(A: ArrayLike, B: ArrayLike) -> Array:
     """``A @ B`` for small matrices, (..., n, k) @ (..., k, m), broadcasting: k multiply-adds
     of broadcast columns and rows, which XLA fuses with their neighbours into one elementwise
     loop. On the CPU, batched products of 3x3 blocks or 6-wide rows as ``dot`` ops are slow
-    library calls that stream each operand from memory (the batch's hot path is made of them)."""
-    A, B = jnp.asarray(A), jnp.asarray(B)
+    library calls that stream each operand from memory (the batch's hot path is made of them).
+    Reverse mode only: its gradients are products of the same kind (the transposes of the
+    multiply-adds would be reductions over 3-wide rows, slower still)."""
+    return _matmul(jnp.asarray(A), jnp.asarray(B))
+
+
+def _products(A: Array, B: Array) -> Array:
     out = jnp.zeros(jnp.broadcast_shapes(A.shape[:-1] + (1,), B.shape[:-2] + (1, B.shape[-1])),
                     jnp.result_type(A, B))  # fmt: skip
     for i in range(A.shape[-1]):
         out = out + A[..., :, i, None] * B[..., None, i, :]
     return out
+
+
+def _unbroadcast(g: Array, shape: tuple[int, ...]) -> Array:
+    """Sum a gradient (..., shape broadcast) back to ``shape``."""
+    g = jnp.sum(g, axis=tuple(range(g.ndim - len(shape))))
+    ones = tuple(i for i, (a, b) in enumerate(zip(g.shape, shape, strict=True)) if b == 1 < a)
+    return jnp.sum(g, axis=ones, keepdims=True)
+
+
+@jax.custom_vjp
+def _matmul(A: Array, B: Array) -> Array:
+    return _products(A, B)
+
+
+def _matmul_fwd(A: Array, B: Array) -> tuple[Array, tuple[Array, Array]]:
+    return _products(A, B), (A, B)
+
+
+def _matmul_bwd(res: tuple[Array, Array], g: Array) -> tuple[Array, Array]:
+    A, B = res
+    dA = _unbroadcast(_products(g, jnp.swapaxes(B, -1, -2)), A.shape)
+    dB = _unbroadcast(_products(jnp.swapaxes(A, -1, -2), g), B.shape)
+    return dA.astype(A.dtype), dB.astype(B.dtype)
+
+
+_matmul.defvjp(_matmul_fwd, _matmul_bwd)
 
 
 def dot(a: ArrayLike, b: ArrayLike) -> Array:

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from gloam_jax import geometry as geo
 from gloam_jax.errors import InputError
 from gloam_jax.features.pca import FeaturePCA
 from gloam_jax.io import write_npz
@@ -58,7 +59,8 @@ class MLP(NamedTuple):
 
     def __call__(self, f: Array) -> Array:
         """Outputs (..., 3) of features (..., 6): one point or a batch."""
-        return jax.nn.relu(f @ self.w1 + self.b1) @ self.w2 + self.b2
+        hidden = jax.nn.relu(geo.matmul(f[..., None, :], self.w1)[..., 0, :] + self.b1)
+        return geo.matmul(hidden[..., None, :], self.w2)[..., 0, :] + self.b2
 
 
 @jax.jit

@@ -151,3 +151,30 @@ def test_interpolate_endpoints_and_midpoint():
     M = geo.se3_interpolate(A, B, 0.5)
     # Half-way twice is the whole way.
     np.testing.assert_allclose(M @ geo.se3_inverse(A) @ M, B, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "shape_a, shape_b",
+    [
+        ((3, 3), (7, 3, 3)),
+        ((5, 2, 3, 3), (5, 1, 3, 2)),
+        ((7, 1, 6), (6, 4)),
+        ((4, 1, 0), (4, 0, 1)),
+    ],
+)
+def test_small_matmul_and_its_gradients_match_matmul(shape_a, shape_b):
+    """Broadcast batch axes (summed back in the gradients) and an empty inner axis."""
+    rng = np.random.default_rng(0)
+    A, B = rng.normal(size=shape_a), rng.normal(size=shape_b)
+    np.testing.assert_allclose(geo.matmul(A, B), A @ B, atol=1e-14)
+
+    def loss(product):
+        return lambda A, B: jax.numpy.sum(jax.numpy.sin(product(A, B)))
+
+    ours = jax.grad(loss(geo.matmul), (0, 1))(A, B)
+    for got, want in zip(ours, jax.grad(loss(jax.numpy.matmul), (0, 1))(A, B), strict=True):
+        assert got.shape == want.shape
+        np.testing.assert_allclose(got, want, atol=1e-12)
+    np.testing.assert_allclose(geo.dot(A[..., 0, :], A[..., 0, :]),
+                               np.sum(A[..., 0, :] ** 2, axis=-1), atol=1e-14)  # fmt: skip
+    np.testing.assert_allclose(geo.rotate(A, B[..., 0]), (A @ B[..., :1])[..., 0], atol=1e-14)

@@ -196,7 +196,7 @@ def test_analytic_gauss_newton_matches_autodiff(num_partners):
     def residuals(xi):
         return _whitened(retract(xi, T), *args[1:])[0].reshape(-1)
 
-    J = jax.jacfwd(residuals)(jnp.zeros(6))
+    J = jax.jacrev(residuals)(jnp.zeros(6))
     e = residuals(jnp.zeros(6))
     np.testing.assert_allclose(H, J.T @ J, rtol=2e-4, atol=1e-3)
     np.testing.assert_allclose(b, J.T @ e, rtol=2e-4, atol=1e-4)
