@@ -476,12 +476,15 @@ def register_pair(learned: Learned, scans: ScanSet, pair: PairSet, config: Batch
         if config.association == "soft"
         else None
     )
-    T = pair.T_init
-    for _ in range(config.rounds):
+
+    def round_(T: Array, _) -> tuple[Array, None]:
         T, _, _ = gicp_round(
             T, source, candidates, max_d2, config.inner_steps, config.adjoint, temperature
         )
-    return T
+        return T, None
+
+    # A scan, so that XLA compiles one round, not config.rounds copies of it.
+    return jax.lax.scan(round_, pair.T_init, length=config.rounds)[0]
 
 
 def register_pairs(learned: Learned, scans: ScanSet, pairs: PairSet, config: BatchConfig) -> Array:
