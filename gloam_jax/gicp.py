@@ -337,7 +337,7 @@ def round_cost(T0, pairs: Pairs, max_d2) -> RoundCost:
     W = jnp.where(inlier[..., None, None], pairs.W, 0.0)
     M = geo.matmul(jnp.swapaxes(W, -1, -2), W)  # the pair's information (N, J, 3, 3)
     count = jnp.sum(inlier, axis=1).astype(q.dtype)
-    mean_sq = jnp.sum(count * jnp.sum(q * q, axis=-1)) / jnp.maximum(jnp.sum(count), 1.0)
+    mean_sq = jnp.sum(count * geo.dot(q, q)) / jnp.maximum(jnp.sum(count), 1.0)
     s = jax.lax.stop_gradient(jnp.sqrt(mean_sq) + 1e-3)
     v = jnp.concatenate([jnp.ones_like(q[:, :1]), q / s], axis=1)  # r = r0 - (v kron I) g
     G = jnp.einsum("ni,nk,njab->iakb", v, v, M).reshape(12, 12)

@@ -111,7 +111,7 @@ def main() -> None:
     for method in args.methods.split(","):
         learned = learned_parts(problem.model, method)
         jax.block_until_ready(batched(learned))
-        jax.block_until_ready(loop(learned)[0])
+        jax.block_until_ready(one(learned, data.scans, pairs[0], config))
         t_batch, T_batch = best_of(args.repeats, batched, learned)
         t_loop, T_loop = best_of(args.repeats, loop, learned)
         diff = float(np.max(np.abs(np.asarray(T_batch) - np.stack(T_loop))))
