@@ -483,8 +483,10 @@ def register_pair(learned: Learned, scans: ScanSet, pair: PairSet, config: Batch
         )
         return T, None
 
-    # A scan, so that XLA compiles one round, not config.rounds copies of it.
-    return jax.lax.scan(round_, pair.T_init, length=config.rounds)[0]
+    # A scan, so that XLA compiles one round, not config.rounds copies of it; each round
+    # rematerialised in the backward pass, so that the gradient keeps only the rounds' poses,
+    # not every round's per-candidate intermediates (half the memory, and quicker).
+    return jax.lax.scan(jax.checkpoint(round_), pair.T_init, length=config.rounds)[0]
 
 
 def register_pairs(learned: Learned, scans: ScanSet, pairs: PairSet, config: BatchConfig) -> Array:

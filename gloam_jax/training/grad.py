@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -129,11 +130,18 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
         save_checkpoint(path, trees, meta)
         write_history(run_dir, history)
 
-    if step == 0 and not history:
-        evaluate(params, 0, None)
+    # Trace and compile the update in a thread while the start is evaluated: XLA compiles
+    # outside Python's lock, so the two overlap.
+    with ThreadPoolExecutor(1) as pool:
+        compiling = pool.submit(
+            lambda: update.lower(params, state, data.scans, data.pairs, step).compile()
+        )
+        if step == 0 and not history:
+            evaluate(params, 0, None)
+        update_step = compiling.result()
     soft = None
     while step < cfg.steps:
-        params, state, value, ok = update(params, state, data.scans, data.pairs, step)
+        params, state, value, ok = update_step(params, state, data.scans, data.pairs, step)
         soft = float(value) if bool(ok) else None
         step += 1
         clock.lap()
