@@ -398,7 +398,13 @@ def train(
     out: Annotated[Path, typer.Option(help="Run folder (resumed when it exists).")] = Path(
         "runs/train"
     ),
-    trials: Annotated[int | None, typer.Option(min=1, help="TPE trials (overrides).")] = None,
+    trials: Annotated[
+        int | None, typer.Option("--trials", "--n-trials", min=1, help="TPE trials (overrides).")
+    ] = None,
+    seed: Annotated[
+        int | None,
+        typer.Option(help="Seed of the start model, TPE's sampler and point subsets (overrides)."),
+    ] = None,
     steps: Annotated[int | None, typer.Option(min=1, help="Gradient steps (overrides).")] = None,
     learning_rate: Annotated[
         float | None, typer.Option(min=0.0, help="Adam's learning rate (overrides).")
@@ -423,6 +429,8 @@ def train(
         cfg = dataclasses.replace(cfg, data=str(data))
     if trials is not None:
         cfg = dataclasses.replace(cfg, tpe=dataclasses.replace(cfg.tpe, n_trials=trials))
+    if seed is not None:
+        cfg = dataclasses.replace(cfg, seed=seed)
     grad = {"steps": steps, "learning_rate": learning_rate}
     grad = {k: v for k, v in grad.items() if v is not None}
     cfg = dataclasses.replace(cfg, grad=dataclasses.replace(cfg.grad, **grad))
