@@ -131,14 +131,16 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
         write_history(run_dir, history)
 
     # Trace and compile the update in a thread while the start is evaluated: XLA compiles
-    # outside Python's lock, so the two overlap.
+    # outside Python's lock, so the two overlap. A finished run compiles nothing.
     with ThreadPoolExecutor(1) as pool:
-        compiling = pool.submit(
-            lambda: update.lower(params, state, data.scans, data.pairs, step).compile()
+        compiling = (
+            pool.submit(lambda: update.lower(params, state, data.scans, data.pairs, step).compile())
+            if step < cfg.steps
+            else None
         )
         if step == 0 and not history:
             evaluate(params, 0, None)
-        update_step = compiling.result()
+        update_step = update if compiling is None else compiling.result()
     soft = None
     while step < cfg.steps:
         params, state, value, ok = update_step(params, state, data.scans, data.pairs, step)
