@@ -485,7 +485,7 @@ def register_pair(learned: Learned, scans: ScanSet, pair: PairSet, config: Batch
 
     # A scan, so that XLA compiles one round, not config.rounds copies of it; each round
     # rematerialised in the backward pass, so that the gradient keeps only the rounds' poses,
-    # not every round's per-candidate intermediates (half the memory, and quicker).
+    # not every round's per-candidate intermediates (half the memory, a quicker first step).
     return jax.lax.scan(jax.checkpoint(round_), pair.T_init, length=config.rounds)[0]
 
 
