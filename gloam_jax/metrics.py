@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from gloam_jax.errors import InputError
-from gloam_jax.io import write_figure
+from gloam_jax.io import as_poses, write_figure
 
 __all__ = [
     "DEFAULT_LENGTHS",
@@ -38,51 +38,16 @@ DEFAULT_LENGTHS: tuple[int, ...] = (100, 200, 300, 400, 500, 600, 700, 800)
 """Segment lengths of the KITTI odometry benchmark, metres."""
 
 _RAD_PER_M_TO_DEG_PER_100M = 180.0 / math.pi * 100.0
-# Inputs are usually read from text with ~9 significant digits, so the bottom row of a pose is
-# only checked loosely: it exists to catch a (3,4)->(4,4) padding bug, not rounding.
-_BOTTOM_ROW_ATOL = 1e-6
 
 Source = str | os.PathLike[str] | None
 Precision = Literal["devkit", "float64"]
 
 
-def _as_poses(poses: ArrayLike, what: str, source: Source) -> NDArray[np.float64]:
-    """Validate and convert to a float64 ``(N, 4, 4)`` array, raising :class:`InputError`."""
-    try:
-        arr = np.asarray(poses, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(source, f"{what} poses are not a numeric array ({exc})") from None
-    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
-        raise InputError(
-            source,
-            f"{what} poses must have shape (N, 4, 4), got {arr.shape}"
-            " (pad KITTI (N, 3, 4) rows with [0, 0, 0, 1])",
-        )
-    if arr.shape[0] == 0:
-        raise InputError(source, f"{what} trajectory is empty")
-    finite = np.isfinite(arr).all(axis=(1, 2))
-    if not finite.all():
-        bad = np.flatnonzero(~finite)
-        raise InputError(
-            source,
-            f"{what} poses contain NaN or inf at {bad.size} pose(s), first at index {bad[0]}",
-        )
-    bottom_ok = np.all(np.abs(arr[:, 3, :] - (0.0, 0.0, 0.0, 1.0)) <= _BOTTOM_ROW_ATOL, axis=1)
-    if not bottom_ok.all():
-        first = int(np.flatnonzero(~bottom_ok)[0])
-        raise InputError(
-            source,
-            f"{what} pose {first} is not homogeneous: last row is {arr[first, 3].tolist()}, "
-            "expected [0, 0, 0, 1]",
-        )
-    return arr
-
-
 def _as_pair(
     gt_poses: ArrayLike, est_poses: ArrayLike, source: Source
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    gt = _as_poses(gt_poses, "ground-truth", source)
-    est = _as_poses(est_poses, "estimated", source)
+    gt = as_poses(gt_poses, "ground-truth", source)
+    est = as_poses(est_poses, "estimated", source)
     if gt.shape[0] != est.shape[0]:
         raise InputError(source, f"{gt.shape[0]} gt poses vs {est.shape[0]} estimated poses")
     return gt, est
@@ -117,7 +82,7 @@ def _distances(
 
 def path_lengths(poses: ArrayLike, *, source: Source = None) -> NDArray[np.float64]:
     """Cumulative distance travelled along the positions: (N, 4, 4) -> (N,), starting at 0."""
-    return _distances(_as_poses(poses, "input", source))
+    return _distances(as_poses(poses, "input", source))
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,8 @@ from numpy.typing import NDArray
 
 from gloam_jax.errors import InputError
 from gloam_jax.geometry import vee
-from gloam_jax.metrics import DEFAULT_LENGTHS, _as_poses, _distances
+from gloam_jax.io import as_poses
+from gloam_jax.metrics import DEFAULT_LENGTHS, path_lengths
 
 __all__ = [
     "TRAINING_FRACTIONS",
@@ -131,9 +132,9 @@ def segment_plan(
     if int(step) != step or step < 1:
         raise ValueError(f"step must be a positive integer, got {step!r}")
     lens = _check_values(lengths, "segment lengths (m)", math.inf)
-    gt = _as_poses(gt_poses, "ground-truth", source)
+    gt = as_poses(gt_poses, "ground-truth", source)
     n = gt.shape[0]
-    dist = _distances(gt)
+    dist = path_lengths(gt, source=source)
     starts = np.arange(0, n, int(step), dtype=np.int64)
     first = np.repeat(starts, lens.size)
     seg_len = np.tile(lens, starts.size)
@@ -168,8 +169,8 @@ def scaled_lengths(
     segments of 15..120 m with the defaults. Raises :class:`InputError` for a path of length 0.
     """
     frac = _check_values(fractions, "length fractions", 1.0)
-    gt = _as_poses(gt_poses, "ground-truth", source)
-    total = float(_distances(gt)[-1])
+    gt = as_poses(gt_poses, "ground-truth", source)
+    total = float(path_lengths(gt, source=source)[-1])
     if total <= 0.0:
         raise InputError(
             source,
