@@ -7,12 +7,15 @@ ground truth and estimate indexed by the same frames.
 100..800 m measured along the ground truth, starting every 10th frame, and the sequence score is
 the mean over all segments of all lengths. By default it replays the devkit's C ``float``
 arithmetic, so it reports the official numbers; ``precision="float64"`` gives the exact values.
+Its segments come from :func:`segment_plan`, which the training loss
+(:mod:`gloam_jax.training.losses`) uses as well, so loss and benchmark score the same segments.
 """
 
 from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -25,17 +28,25 @@ from gloam_jax.io import as_poses, write_figure
 
 __all__ = [
     "DEFAULT_LENGTHS",
+    "TRAINING_FRACTIONS",
     "AteResult",
     "RteResult",
+    "SegmentPlan",
     "ate",
     "evaluate",
     "kitti_rte",
     "path_lengths",
     "plot_evaluation",
+    "scaled_lengths",
+    "segment_plan",
 ]
 
 DEFAULT_LENGTHS: tuple[int, ...] = (100, 200, 300, 400, 500, 600, 700, 800)
 """Segment lengths of the KITTI odometry benchmark, metres."""
+
+TRAINING_FRACTIONS: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
+"""Default segment lengths of :func:`scaled_lengths`, as fractions of the path length: the
+KITTI lengths 100..800 m as if the training window were 1 km long."""
 
 _RAD_PER_M_TO_DEG_PER_100M = 180.0 / math.pi * 100.0
 
@@ -83,6 +94,117 @@ def _distances(
 def path_lengths(poses: ArrayLike, *, source: Source = None) -> NDArray[np.float64]:
     """Cumulative distance travelled along the positions: (N, 4, 4) -> (N,), starting at 0."""
     return _distances(as_poses(poses, "input", source))
+
+
+@dataclass(frozen=True, eq=False)
+class SegmentPlan:
+    """The devkit's segments of one ground-truth trajectory, in its order (first frame outer,
+    length inner); built by :func:`segment_plan`.
+
+    ``first_frames``, ``last_frames``: (S,) int64 pose indices; ``lengths``: (S,) nominal
+    segment lengths, metres, in the float type the plan was built with (float64 unless it is
+    the devkit's float32); ``num_poses``: the trajectory's pose count N.
+    :mod:`gloam_jax.training.losses` registers it as a JAX pytree with ``num_poses`` static, so
+    it can be closed over or passed to jitted functions.
+    """
+
+    first_frames: NDArray[np.int64]
+    last_frames: NDArray[np.int64]
+    lengths: NDArray[np.floating[Any]]
+    num_poses: int
+
+    @property
+    def num_segments(self) -> int:
+        """S, the number of segments."""
+        return int(np.shape(self.first_frames)[0])
+
+
+def _check_step(step: int) -> int:
+    if int(step) != step or step < 1:
+        raise ValueError(f"step must be a positive integer, got {step!r}")
+    return int(step)
+
+
+def _check_values(values: Sequence[float], what: str, upper: float) -> NDArray[np.float64]:
+    """1-D, non-empty, distinct, finite values in (0, upper), as float64; else ValueError."""
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim != 1 or arr.size == 0:
+        raise ValueError(f"{what} must be a non-empty sequence of numbers, got {values!r}")
+    if not np.all(np.isfinite(arr) & (arr > 0.0) & (arr < upper)):
+        raise ValueError(f"{what} must lie in (0, {upper:g}), got {list(values)}")
+    if np.unique(arr).size != arr.size:
+        raise ValueError(f"{what} must be distinct, got {list(values)}")
+    return arr
+
+
+def segment_plan(
+    gt_poses: ArrayLike,
+    lengths: Sequence[float] = DEFAULT_LENGTHS,
+    *,
+    step: int = 10,
+    dtype: type[np.floating[Any]] = np.float64,
+    source: Source = None,
+) -> SegmentPlan:
+    """The segments of ``gt_poses`` (N, 4, 4) that :func:`kitti_rte` scores, for ``lengths``
+    in metres.
+
+    A segment starts at every ``step``-th frame ``f``; for each length ``L`` it ends at the first
+    frame whose ground-truth path distance exceeds ``dist[f] + L`` and is dropped when there is
+    none. Distances and lengths are summed and compared in ``dtype``: float64, or float32 to
+    replay the devkit's C ``float``. Lengths may be fractional (see :func:`scaled_lengths`);
+    ``kitti_rte`` itself takes whole metres only. Raises :class:`InputError` for bad poses or
+    when no segment fits.
+    """
+    step = _check_step(step)
+    lens = _check_values(lengths, "segment lengths (m)", math.inf).astype(dtype)
+    gt = as_poses(gt_poses, "ground-truth", source)
+    n = gt.shape[0]
+    dist = _distances(gt, dtype)
+    starts = np.arange(0, n, step, dtype=np.int64)
+    # Devkit order: first frame in the outer loop, length in the inner one.
+    first = np.repeat(starts, lens.size)
+    seg_len = np.tile(lens, starts.size)
+    # dist is non-decreasing, so the devkit's linear scan for the first dist[j] > dist[f] + L
+    # is exactly a right-sided binary search.
+    last = np.searchsorted(dist, dist[first] + seg_len, side="right")
+    keep = last < n
+    if not keep.any():
+        # A segment must be strictly longer than its length, so equality is too short as well.
+        raise InputError(
+            source,
+            f"no segment fits: the ground-truth path of {n} poses is {dist[-1]:.3f} m long, "
+            f"not longer than the shortest segment length {lens.min():g} m",
+        )
+    return SegmentPlan(
+        first_frames=first[keep],
+        last_frames=last[keep].astype(np.int64),
+        lengths=seg_len[keep],
+        num_poses=n,
+    )
+
+
+def scaled_lengths(
+    gt_poses: ArrayLike,
+    fractions: Sequence[float] = TRAINING_FRACTIONS,
+    *,
+    source: Source = None,
+) -> tuple[float, ...]:
+    """Segment lengths in metres for a short window: ``fractions`` (each in (0, 1)) of the
+    ground-truth path length of ``gt_poses`` (N, 4, 4).
+
+    Every fraction below 1 leaves at least the segment from frame 0, so a 150 m window gets
+    segments of 15..120 m with the defaults. Raises :class:`InputError` for a path of length 0.
+    """
+    frac = _check_values(fractions, "length fractions", 1.0)
+    gt = as_poses(gt_poses, "ground-truth", source)
+    total = float(_distances(gt)[-1])
+    if total <= 0.0:
+        raise InputError(
+            source,
+            f"the ground-truth path of {gt.shape[0]} poses has zero length, so no "
+            "segment length can be scaled from it",
+        )
+    return tuple(float(f * total) for f in frac)
 
 
 @dataclass(frozen=True)
@@ -159,35 +281,12 @@ def kitti_rte(
     Raises :class:`InputError` (with ``source`` as the file name) for mismatched lengths, bad
     shapes, NaN/inf, or a trajectory too short for any segment.
     """
-    if int(step) != step or step < 1:
-        raise ValueError(f"step must be a positive integer, got {step!r}")
-    step = int(step)
+    step = _check_step(step)
     lens = _check_lengths(lengths)
     real = _float_type(precision)
     gt, est = _as_pair(gt_poses, est_poses, source)
-    n = gt.shape[0]
-    dist = _distances(gt, real)
-
-    firsts_all = np.arange(0, n, step, dtype=np.int64)
-    # Devkit order: first frame in the outer loop, length in the inner one.
-    first_grid = np.repeat(firsts_all, len(lens))
-    len_grid = np.tile(np.asarray(lens, dtype=real), firsts_all.size)
-    # dist is non-decreasing, so the devkit's linear scan for the first dist[j] > dist[f] + L
-    # is exactly a right-sided binary search.
-    last_grid = np.searchsorted(dist, dist[first_grid] + len_grid, side="right")
-    keep = last_grid < n
-    if not keep.any():
-        shortest = min(lens)
-        # A segment must be strictly longer than its length, so equality is too short as well.
-        how = "<" if dist[-1] < shortest else "is not more than"
-        raise InputError(
-            source,
-            "trajectory is shorter than the shortest segment length: ground-truth path "
-            f"{dist[-1]:.1f} m {how} {shortest} m",
-        )
-    first = first_grid[keep]
-    last = last_grid[keep].astype(np.int64)
-    seg_len = len_grid[keep]
+    plan = segment_plan(gt, lens, step=step, dtype=real, source=source)
+    first, last, seg_len = plan.first_frames, plan.last_frames, plan.lengths
 
     # General inverses (not the rigid-transform shortcut), as the devkit does, so slightly
     # non-orthonormal rotations read from text are treated identically.

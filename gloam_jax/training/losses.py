@@ -12,29 +12,23 @@ divided by its nominal length and the terms are averaged over all segments: the 
 is the benchmark number, as a fraction (m/m) rather than percent.
 
 Which segments exist depends on the ground truth only, so a :class:`SegmentPlan` is built once
-on the host (numpy) and the loss has static shapes.
+on the host (numpy) and the loss has static shapes. The plan, :func:`segment_plan`,
+:func:`scaled_lengths` and :data:`TRAINING_FRACTIONS` live in :mod:`gloam_jax.metrics` (the
+same segment choice as ``kitti_rte``) and are re-exported here.
 """
 
 from __future__ import annotations
 
-import math
-import os
-from collections.abc import Sequence
-from dataclasses import dataclass
 from functools import partial
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
-from numpy.typing import ArrayLike as NpArrayLike
-from numpy.typing import NDArray
 
 from gloam_jax.errors import InputError
 from gloam_jax.geometry import vee
-from gloam_jax.io import as_poses
-from gloam_jax.metrics import DEFAULT_LENGTHS, path_lengths
+from gloam_jax.metrics import TRAINING_FRACTIONS, SegmentPlan, scaled_lengths, segment_plan
 
 __all__ = [
     "TRAINING_FRACTIONS",
@@ -47,11 +41,11 @@ __all__ = [
     "segment_plan",
 ]
 
-TRAINING_FRACTIONS: tuple[float, ...] = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
-"""Default segment lengths of :func:`scaled_lengths`, as fractions of the path length: the
-KITTI lengths 100..800 m as if the training window were 1 km long."""
-
-Source = str | os.PathLike[str] | None
+# A plan's index and length arrays are leaves and its pose count static, so a plan can be
+# closed over or passed to jitted functions.
+jax.tree_util.register_dataclass(
+    SegmentPlan, data_fields=["first_frames", "last_frames", "lengths"], meta_fields=["num_poses"]
+)
 
 # Full float32 products: the default lets GPUs use TF32 (10-bit mantissa), which would put
 # decimetre errors on kilometre-scale chained translations, the size of the signal itself.
@@ -74,110 +68,6 @@ def chain(T_rel: ArrayLike) -> Array:
     # Scanning [I, T_1, ..., T_N] puts pose 0 in place and handles N = 0 without a branch.
     elems = jnp.concatenate([eye, T_rel], axis=-3)
     return jax.lax.associative_scan(_matmul, elems, axis=elems.ndim - 3)
-
-
-@partial(
-    jax.tree_util.register_dataclass,
-    data_fields=["first_frames", "last_frames", "lengths"],
-    meta_fields=["num_poses"],
-)
-@dataclass(frozen=True, eq=False)
-class SegmentPlan:
-    """The devkit's segments of one ground-truth trajectory, in its order (first frame outer,
-    length inner); built by :func:`segment_plan`.
-
-    ``first_frames``, ``last_frames``: (S,) int64 pose indices; ``lengths``: (S,) float64
-    nominal segment lengths, metres; ``num_poses``: the trajectory's pose count N. A pytree with
-    ``num_poses`` static, so it can be closed over or passed to jitted functions.
-    """
-
-    first_frames: NDArray[np.int64]
-    last_frames: NDArray[np.int64]
-    lengths: NDArray[np.float64]
-    num_poses: int
-
-    @property
-    def num_segments(self) -> int:
-        """S, the number of segments."""
-        return int(np.shape(self.first_frames)[0])
-
-
-def _check_values(values: Sequence[float], what: str, upper: float) -> NDArray[np.float64]:
-    """1-D, non-empty, distinct, finite values in (0, upper), as float64; else ValueError."""
-    arr = np.asarray(values, dtype=np.float64)
-    if arr.ndim != 1 or arr.size == 0:
-        raise ValueError(f"{what} must be a non-empty sequence of numbers, got {values!r}")
-    if not np.all(np.isfinite(arr) & (arr > 0.0) & (arr < upper)):
-        raise ValueError(f"{what} must lie in (0, {upper:g}), got {list(values)}")
-    if np.unique(arr).size != arr.size:
-        raise ValueError(f"{what} must be distinct, got {list(values)}")
-    return arr
-
-
-def segment_plan(
-    gt_poses: NpArrayLike,
-    lengths: Sequence[float] = DEFAULT_LENGTHS,
-    *,
-    step: int = 10,
-    source: Source = None,
-) -> SegmentPlan:
-    """Segments of ``gt_poses`` (N, 4, 4) exactly as :func:`~gloam_jax.metrics.kitti_rte`
-    (``precision="float64"``) picks them, for ``lengths`` in metres.
-
-    A segment starts at every ``step``-th frame ``f``; for each length ``L`` it ends at the first
-    frame whose ground-truth path distance exceeds ``dist[f] + L`` and is dropped when there is
-    none. Lengths may be fractional (see :func:`scaled_lengths`); ``kitti_rte`` itself takes whole
-    metres only. Raises :class:`InputError` for bad poses or when no segment fits.
-    """
-    if int(step) != step or step < 1:
-        raise ValueError(f"step must be a positive integer, got {step!r}")
-    lens = _check_values(lengths, "segment lengths (m)", math.inf)
-    gt = as_poses(gt_poses, "ground-truth", source)
-    n = gt.shape[0]
-    dist = path_lengths(gt, source=source)
-    starts = np.arange(0, n, int(step), dtype=np.int64)
-    first = np.repeat(starts, lens.size)
-    seg_len = np.tile(lens, starts.size)
-    # dist is non-decreasing, so the devkit's linear scan for the first dist[j] > dist[f] + L
-    # is a right-sided binary search (as in metrics.kitti_rte).
-    last = np.searchsorted(dist, dist[first] + seg_len, side="right")
-    keep = last < n
-    if not keep.any():
-        raise InputError(
-            source,
-            f"no segment fits: the ground-truth path of {n} poses is {dist[-1]:.3f} m long, "
-            f"not longer than the shortest segment length {lens.min():g} m",
-        )
-    return SegmentPlan(
-        first_frames=first[keep],
-        last_frames=last[keep].astype(np.int64),
-        lengths=seg_len[keep],
-        num_poses=n,
-    )
-
-
-def scaled_lengths(
-    gt_poses: NpArrayLike,
-    fractions: Sequence[float] = TRAINING_FRACTIONS,
-    *,
-    source: Source = None,
-) -> tuple[float, ...]:
-    """Segment lengths in metres for a short training window: ``fractions`` (each in (0, 1)) of
-    the ground-truth path length of ``gt_poses`` (N, 4, 4).
-
-    Every fraction below 1 leaves at least the segment from frame 0, so a 150 m window gets
-    segments of 15..120 m with the defaults. Raises :class:`InputError` for a path of length 0.
-    """
-    frac = _check_values(fractions, "length fractions", 1.0)
-    gt = as_poses(gt_poses, "ground-truth", source)
-    total = float(path_lengths(gt, source=source)[-1])
-    if total <= 0.0:
-        raise InputError(
-            source,
-            f"the ground-truth path of {gt.shape[0]} poses has zero length, so no "
-            "segment length can be scaled from it",
-        )
-    return tuple(float(f * total) for f in frac)
 
 
 def _trajectory(poses: ArrayLike, plan: SegmentPlan, what: str) -> Array:
