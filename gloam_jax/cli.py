@@ -302,7 +302,10 @@ def _run_odometry(
 def run(
     data: Annotated[Path, typer.Argument(help="KITTI-layout root (sequences/, poses/).")],
     sequence: Annotated[str, typer.Option(help="Sequence id, e.g. 00.")] = "00",
-    config: Annotated[Path | None, typer.Option(help="YAML settings (configs/*.yaml).")] = None,
+    config: Annotated[
+        Path | None,
+        typer.Option(help="YAML settings: a file, or a shipped config's name (gicp, gloam, ...)."),
+    ] = None,
     frames: Annotated[int | None, typer.Option(min=2, help="Only the first N scans.")] = None,
     out: Annotated[Path, typer.Option(help="Results root; a timestamped run inside.")] = Path(
         "results"
@@ -472,20 +475,13 @@ def demo(
 ) -> None:
     """Simulate a short urban drive (cached), run GICP and Generalized LOAM (the shipped
     model) odometry on it, and score both."""
-    import dataclasses
-
-    from gloam_jax.odometry import OdometryConfig
+    from gloam_jax.config import load_config
     from gloam_jax.simulate.sequence import FORMAT_VERSION
 
     data = _cache_dir() / f"demo-{__version__}-f{FORMAT_VERSION}-seed{seed}-n{frames}"
     seq_dir, elapsed = _run_simulation(data, frames, seed=seed, style="urban", sequence="00")
     console.print(f"simulated sequence: {seq_dir} ({elapsed:.1f} s; cached for the next run)")
-    gicp = OdometryConfig()
-    # configs/gloam.yaml: the learned parts of the shipped model, 5 association candidates.
-    gloam = dataclasses.replace(
-        gicp, method="gloam", model="default",
-        gicp=dataclasses.replace(gicp.gicp, num_candidates=5),
-    )  # fmt: skip
+    gicp, gloam = load_config("gicp"), load_config("gloam")  # the shipped configs/*.yaml
     run_dir = _run_dir(out)
     results = {
         c.method: _run_odometry(data, "00", c, None, run_dir / c.method) for c in (gicp, gloam)

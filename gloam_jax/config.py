@@ -1,9 +1,12 @@
 """Experiment configuration: settings dataclasses, read from and written to YAML.
 
 An odometry YAML file holds the fields of :class:`~gloam_jax.odometry.OdometryConfig`, with the
-GICP ones under ``gicp:``; a training one those of
-:class:`~gloam_jax.training.config.TrainConfig`. Unknown keys and wrongly typed values are
-errors naming the file.
+scan preparation under ``preprocess:`` and the GICP ones under ``gicp:``; a training one those
+of :class:`~gloam_jax.training.config.TrainConfig`. Unknown keys and wrongly typed values are
+errors naming the file; keys that moved into a section name their new place. A section left
+out, or given in part, keeps the defaults of its parent (e.g. ``batch.gicp`` its 5
+candidates). The files in ``configs/`` ship inside the package: :func:`load_config` takes
+their name (``gloam``) as well as a path.
 """
 
 from __future__ import annotations
@@ -19,23 +22,34 @@ from gloam_jax.errors import InputError
 from gloam_jax.gicp import GICPConfig
 from gloam_jax.io import write_atomic
 from gloam_jax.odometry import OdometryConfig
+from gloam_jax.preprocess import PreprocessConfig
+
+PACKAGED = Path(__file__).resolve().parent / "configs"
+"""The settings files shipped with the package (``configs/`` in a checkout)."""
 
 
-def build_dataclass(cls, values: dict[str, Any], source: str, prefix: str = ""):
-    """``cls(**values)``, nested dataclasses from nested mappings, with the values checked
-    against the field types; errors name ``source`` and the setting."""
+def build_dataclass(cls, values: dict[str, Any], source: str, prefix: str = "", base=None):
+    """``cls(**values)`` (``base`` with ``values`` replaced, when given), nested dataclasses
+    from nested mappings, with the values checked against the field types; errors name
+    ``source`` and the setting."""
     hints = get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
+    moved = getattr(cls, "MOVED", {})
+    for key in sorted(set(values) & set(moved)):
+        raise InputError(source, f"setting '{prefix}{key}' moved to '{prefix}{moved[key]}'")
     unknown = sorted(set(values) - names)
     if unknown:
         raise InputError(source, f"unknown setting '{prefix}{unknown[0]}'; known: {sorted(names)}")
+    base = cls() if base is None else base
     kwargs = {}
     for name, value in values.items():
         hint = hints[name]
         if dataclasses.is_dataclass(hint):
             if not isinstance(value, dict):
                 raise InputError(source, f"{prefix}{name} must be a mapping")
-            kwargs[name] = build_dataclass(hint, value, source, f"{prefix}{name}.")
+            kwargs[name] = build_dataclass(
+                hint, value, source, f"{prefix}{name}.", getattr(base, name)
+            )
             continue
         if get_origin(hint) is tuple:
             if not isinstance(value, list | tuple):
@@ -55,17 +69,29 @@ def build_dataclass(cls, values: dict[str, Any], source: str, prefix: str = ""):
         elif hint is bool and not isinstance(value, bool):
             raise InputError(source, f"{prefix}{name} must be true or false, not {value!r}")
         kwargs[name] = hint(value) if hint in (int, float) else value
-    return cls(**kwargs)
+    return dataclasses.replace(base, **kwargs)
+
+
+def resolve_config(name_or_path: str | Path) -> Path:
+    """A settings file: a path, or the name of one shipped with the package (``gloam``)."""
+    path = Path(name_or_path)
+    if not path.exists() and path.suffix == "" and path.name == str(name_or_path):
+        packaged = PACKAGED / f"{path.name}.yaml"
+        if packaged.is_file():
+            return packaged
+        names = sorted(p.stem for p in PACKAGED.glob("*.yaml"))
+        raise InputError(path, f"no such file, nor a shipped config (one of {', '.join(names)})")
+    if not path.exists():
+        raise InputError(path, "file not found")
+    return path
 
 
 def load_config(path: str | Path | None, cls: type = OdometryConfig):
-    """Settings of ``cls`` (default: odometry) from a YAML file, defaults for what it leaves
-    out; None: all defaults."""
+    """Settings of ``cls`` (default: odometry) from a YAML file or a shipped config's name,
+    defaults for what it leaves out; None: all defaults."""
     if path is None:
         return cls()
-    path = Path(path)
-    if not path.exists():
-        raise InputError(path, "file not found")
+    path = resolve_config(path)
     try:
         values = yaml.safe_load(path.read_text()) or {}
     except yaml.YAMLError as err:
@@ -89,8 +115,10 @@ def dump_config(config, path: str | Path) -> None:
 __all__ = [
     "GICPConfig",
     "OdometryConfig",
+    "PreprocessConfig",
     "build_dataclass",
     "config_dict",
     "dump_config",
     "load_config",
+    "resolve_config",
 ]

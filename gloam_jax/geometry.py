@@ -29,6 +29,11 @@ _T_MINUS_SIN = (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800)  # (t - si
 _V_INVERSE = (1 / 12, 1 / 720, 1 / 30240, 1 / 1209600, 1 / 47900160)  # (1 - (t/2)cot(t/2)) / t^2
 
 
+def real_dtype():
+    """float64 when JAX runs in x64 mode (gradient checks, tests), else float32 (fast path)."""
+    return jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32
+
+
 def _series(x: Array, coefficients: tuple[float, ...]) -> Array:
     """sum_k c_k x^k by Horner's rule."""
     out = jnp.full_like(x, coefficients[-1])

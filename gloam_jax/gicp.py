@@ -1,10 +1,11 @@
-"""Generalized ICP in JAX: candidate sets from a k-d tree, Levenberg-Marquardt via optimistix.
+"""Generalized ICP in JAX: one round's math, Levenberg-Marquardt via optimistix.
 
-Registration estimates ``T_target_source``. Each outer round finds, on the host, the K
-nearest target points of every transformed source point (a fixed ``(N, K)`` candidate set);
-a jitted solve chooses each source point's partner among its candidates (by distance, in
-[xyz, f] space when the cloud has association features) and runs a few Levenberg-Marquardt
-steps on the increment ``xi = (rho, phi)`` of ``T = retract(xi, T_round)``.
+Registration estimates ``T_target_source``. Each outer round gets, from the host's k-d
+tree (:mod:`gloam_jax.registration`), the K nearest target points of every transformed
+source point (a fixed ``(N, K)`` candidate set); a jitted solve chooses each source point's
+partner among its candidates (by distance, in [xyz, f] space when the cloud has association
+features) and runs a few Levenberg-Marquardt steps on the increment ``xi = (rho, phi)`` of
+``T = retract(xi, T_round)``.
 
 The increment rotates the source about its own origin (the sensor) by ``exp(phi)`` and shifts
 it by ``rho``, both in target axes. Unlike a left se(3) increment, which rotates about the
@@ -14,15 +15,15 @@ the information on the sensor's position (m) and attitude (rad).
 
 The residual of a pair is ``b - T a``, whitened by the Cholesky factor of
 ``C_b + R C_a R^T`` (Segal et al., 2009), so the squared norm is the Mahalanobis distance.
-Pairs farther apart than ``max_correspondence_distance`` are dropped. Within a round the
+WhitenedPairs farther apart than ``max_correspondence_distance`` are dropped. Within a round the
 pairs, their weights and inliers are fixed, so the round's cost is an exact quadratic form in
 ``(rho, exp(phi) - I)``, summed once (:func:`round_cost`): LM works on 12 residuals.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from functools import cached_property, partial
+from dataclasses import dataclass
+from functools import partial
 from typing import Literal, NamedTuple
 
 import jax
@@ -33,17 +34,8 @@ import optimistix as optx
 from jax import Array
 
 from gloam_jax import association
-from gloam_jax import covariance as cov
 from gloam_jax import geometry as geo
-from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
-from gloam_jax.models import Learned
-from gloam_jax.neighbors import KdTree
-
-
-def _real():
-    """float64 when JAX runs in x64 mode (gradient checks, tests), else float32 (fast path)."""
-    return jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32
 
 
 @dataclass(frozen=True)
@@ -72,137 +64,6 @@ class Cloud(NamedTuple):
     covs: Array
     mask: Array
     features: Array
-
-
-@dataclass
-class PreparedCloud:
-    """A cloud ready for registration: downsampled points, k-d tree, regularised covariances."""
-
-    points: np.ndarray  # (N, 3)
-    covs: np.ndarray  # (N, 3, 3)
-    tree: KdTree
-    features: np.ndarray | None = None  # (N, F) for data association; None: none (F = 0)
-    num_dropped: int = 0  # NaN / inf points removed
-
-    @cached_property
-    def radius(self) -> float:
-        """Distance of the farthest point from the cloud's origin (m)."""
-        return float(np.sqrt(np.max(np.sum(self.points**2, axis=1))))
-
-    _padded: dict[tuple, Cloud] = field(default_factory=dict, repr=False)
-
-    def padded(self, size: int | None = None) -> Cloud:
-        """Device arrays padded to ``size`` rows (default: the bucket size), cached."""
-        size = pc.bucket_size(len(self.points)) if size is None else size
-        key = (size, _real())
-        if key in self._padded:
-            return self._padded[key]
-        points, mask = pc.pad(self.points, size)
-        covs, _ = pc.pad(self.covs, size)
-        covs[len(self.points) :] = np.eye(3)  # keeps padded rows finite
-        features = np.zeros((len(self.points), 0)) if self.features is None else self.features
-        real = _real()
-        cloud = Cloud(
-            jnp.asarray(points, real),
-            jnp.asarray(covs, real),
-            jnp.asarray(mask),
-            jnp.asarray(pc.pad(features, size)[0], real),
-        )
-        self._padded[key] = cloud
-        return cloud
-
-
-class RegistrationResult(NamedTuple):
-    """Outcome of :func:`align`; ``H``, ``b`` and ``error`` are the Gauss-Newton system over
-    the increment of :func:`retract` and the sum of squared whitened residuals at the final
-    estimate."""
-
-    T_target_source: np.ndarray
-    converged: bool
-    iterations: int
-    num_inliers: int
-    H: np.ndarray
-    b: np.ndarray
-    error: float
-
-
-def attributes(
-    values: Array, vectors: Array, pca_features: Array, learned: Learned, regularizer: str
-) -> tuple[Array, Array]:
-    """Covariances (..., 3, 3) and association features (..., F) of points whose k-NN
-    covariances have ascending eigenvalues (..., 3) and eigenvectors (..., 3, 3), with PCA
-    features (..., 6) (any width when ``learned`` uses none).
-
-    Plain GICP regularises the eigenvalues (``regularizer``) and has no features (F = 0); a
-    learned eigenvalue MLP replaces the regulariser (Algorithm 1), a conversion MLP gives the
-    features of data association (F = 3).
-    """
-    if learned.eigenvalue is None:
-        covs = cov.recompose(vectors, cov.EIGENVALUE_RULES[regularizer](values))
-    else:
-        raw = learned.eigenvalue(pca_features.astype(vectors.dtype))
-        covs = cov.recompose(vectors, cov.learned_values(raw, learned.eps).astype(vectors.dtype))
-    if learned.conversion is None:
-        return covs, jnp.zeros((*vectors.shape[:-2], 0), vectors.dtype)
-    return covs, learned.conversion(pca_features.astype(vectors.dtype))
-
-
-@partial(jax.jit, static_argnames=("regularizer",))
-def cloud_attributes(
-    points: Array, neighbours: Array, pca_features: Array, learned: Learned, regularizer: str
-) -> tuple[Array, Array]:
-    """:func:`attributes` of points (N, 3) from their k-NN indices (N, k)."""
-    values, vectors = cov.eigendecompose(cov.knn_covariances(points, neighbours))
-    return attributes(values, vectors, pca_features, learned, regularizer)
-
-
-def prepare(
-    points: np.ndarray,
-    *,
-    downsampling_resolution: float = 0.25,
-    num_neighbors: int = 20,
-    regularizer: str = "plane",
-    source: str | None = None,
-) -> PreparedCloud:
-    """Drop invalid points, voxel-downsample, build the tree and the covariances: (N, 3+)."""
-    points, dropped = pc.drop_invalid(np.asarray(points), source)
-    points = pc.voxel_downsample(points[:, :3].astype(np.float64), downsampling_resolution)
-    cloud = build_cloud(points, num_neighbors, regularizer, source)
-    cloud.num_dropped = dropped
-    return cloud
-
-
-def build_cloud(
-    points: np.ndarray,
-    num_neighbors: int,
-    regularizer: str = "plane",
-    source: str | None = None,
-    size: int | None = None,
-    pca_features: np.ndarray | None = None,
-    learned: Learned | None = None,
-) -> PreparedCloud:
-    """Tree, covariances and association features of clean, downsampled points (N, 3)
-    float64; ``pca_features`` (N, 6) feed the ``learned`` parts (see cloud_attributes).
-    ``size``: rows the jitted covariance code sees (default: the bucket size)."""
-    learned = Learned() if learned is None else learned
-    tree = KdTree(points, source)
-    neighbours, _ = tree.query(points, num_neighbors)
-    if pca_features is None:
-        if learned.eigenvalue is not None or learned.conversion is not None:
-            raise InputError(source, "learned covariances or association need point features")
-        pca_features = np.zeros((len(points), 0))
-    # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
-    size = pc.bucket_size(len(points)) if size is None else size
-    covs, features = cloud_attributes(
-        jnp.asarray(pc.pad(points, size)[0]),
-        jnp.asarray(pc.pad(neighbours, size)[0]),
-        jnp.asarray(pc.pad(np.asarray(pca_features), size)[0]),
-        learned,
-        regularizer,
-    )
-    covs = np.asarray(covs, dtype=np.float64)[: len(points)]
-    features = None if learned.conversion is None else np.asarray(features)[: len(points)]
-    return PreparedCloud(points, covs, tree, features)
 
 
 def _inverse_cholesky(C: Array) -> Array:
@@ -257,7 +118,7 @@ def choose_partners(T: Array, source: Cloud, candidates: Cloud, temperature=None
     return Partners(b, candidates.covs, jnp.exp(0.5 * log_w))
 
 
-class Pairs(NamedTuple):
+class WhitenedPairs(NamedTuple):
     """A round's pairs, fixed through its LM steps: source points a (N, 3), their partners'
     target points b (N, J, 3), the whitening ``W = sqrt(w) L^-1`` (N, J, 3, 3) of each pair's
     ``C_b + R C_a R^T = L L^T`` at the round's starting rotation R, and which pairs exist
@@ -269,15 +130,15 @@ class Pairs(NamedTuple):
     valid: Array
 
 
-def make_pairs(R: Array, source: Cloud, partners: Partners) -> Pairs:
-    """The :class:`Pairs` of ``partners``, weights taken at the rotation R (3, 3)."""
+def make_pairs(R: Array, source: Cloud, partners: Partners) -> WhitenedPairs:
+    """The :class:`WhitenedPairs` of ``partners``, weights taken at the rotation R (3, 3)."""
     C = partners.covs + geo.matmul(geo.matmul(R, source.covs), R.T)[:, None]
     W = _inverse_cholesky(C) * partners.sqrt_weight[..., None, None]
     valid = source.mask[:, None] & (partners.sqrt_weight > 0)
-    return Pairs(source.points, partners.points, W, valid)
+    return WhitenedPairs(source.points, partners.points, W, valid)
 
 
-def _whitened(T: Array, pairs: Pairs, max_d2) -> tuple[Array, Array, Array]:
+def _whitened(T: Array, pairs: WhitenedPairs, max_d2) -> tuple[Array, Array, Array]:
     """Whitened, weighted residuals ``W (b - T a)`` (N, J, 3), zero for outliers (pairs
     farther apart than sqrt(max_d2)), the inlier mask (N, J) and the moved points T a (N, 3)."""
     moved = geo.rotate(T[:3, :3], pairs.a) + T[:3, 3]
@@ -321,7 +182,7 @@ class RoundCost(NamedTuple):
     s: Array
 
 
-def round_cost(T0, pairs: Pairs, max_d2) -> RoundCost:
+def round_cost(T0, pairs: WhitenedPairs, max_d2) -> RoundCost:
     """The :class:`RoundCost` of the pairs from T0, inliers those closer than sqrt(max_d2).
 
     With pairs, weights and inliers fixed, a pair's residual is ``r0 - rho - (exp(phi) - I) q``
@@ -360,7 +221,7 @@ _ADJOINTS = {"unrolled": optx.RecursiveCheckpointAdjoint(), "implicit": optx.Imp
 
 
 @jax.jit
-def gauss_newton_system(T, pairs: Pairs, max_d2):
+def gauss_newton_system(T, pairs: WhitenedPairs, max_d2):
     """H = J^T J, b = J^T e, error = e.e and the inlier count at T.
 
     J is the whitened residuals' Jacobian with respect to the increment xi = (rho, phi) of
@@ -378,7 +239,7 @@ def gauss_newton_system(T, pairs: Pairs, max_d2):
     return H, b, jnp.sum(e * e), jnp.sum(inlier)
 
 
-def _lm(T0, pairs: Pairs, max_d2, inner_steps, adjoint):
+def _lm(T0, pairs: WhitenedPairs, max_d2, inner_steps, adjoint):
     """A few LM steps from T0 with fixed pairs: the increment xi (6,)."""
     solver = optx.LevenbergMarquardt(rtol=1e-8, atol=1e-8, linear_solver=lx.Normal(lx.Cholesky()))
     sol = optx.least_squares(
@@ -401,7 +262,7 @@ def gicp_round(
     inner_steps: int,
     adjoint: str = "unrolled",
     temperature=None,
-) -> tuple[Array, Array, Pairs]:
+) -> tuple[Array, Array, WhitenedPairs]:
     """One outer round, traceable (jit, vmap, grad): partners among the (N, K)
     ``candidates`` (:func:`candidate_cloud`) at T0, then LM from T0.
 
@@ -432,96 +293,3 @@ def solve_round(
     candidates = candidate_cloud(target, candidates, valid)
     T, xi, pairs = gicp_round(T0, source, candidates, max_d2, inner_steps, adjoint)
     return T, xi, gauss_newton_system(T, pairs, max_d2)
-
-
-def align_prepared(
-    target: PreparedCloud,
-    source: PreparedCloud,
-    init_T_target_source: np.ndarray | None = None,
-    config: GICPConfig = GICPConfig(),
-    sizes: tuple[int, int] | None = None,
-) -> RegistrationResult:
-    """Register prepared clouds; see :func:`align`. ``sizes``: the rows (source, target) the
-    solver sees (default: their bucket sizes); the odometry holds them fixed across frames,
-    so the solver compiles once."""
-    T = np.eye(4) if init_T_target_source is None else np.asarray(init_T_target_source, float)
-    if sizes is None:
-        src, tgt = source.padded(), target.padded()
-    else:
-        src, tgt = source.padded(sizes[0]), target.padded(sizes[1])
-    size = src.points.shape[0]
-    max_d2 = jnp.asarray(config.max_correspondence_distance**2, dtype=_real())
-    converged, iterations = False, 0
-    for iterations in range(1, config.max_iterations + 1):  # noqa: B007
-        moved = source.points @ T[:3, :3].T + T[:3, 3]
-        cand, valid = target.tree.query(
-            moved, config.num_candidates, config.max_correspondence_distance
-        )
-        cand, valid = pc.pad(cand, size)[0], pc.pad(valid, size)[0]
-        _, xi, system = solve_round(
-            jnp.asarray(T, dtype=_real()),
-            src,
-            tgt,
-            jnp.asarray(cand),
-            jnp.asarray(valid),
-            max_d2,
-            config.inner_steps,
-            config.adjoint,
-        )
-        # Compose in float64 on the host so that many rounds do not accumulate float32 error.
-        T_round, T = T, retract_host(np.asarray(xi, np.float64), T)
-        H, b, error, inliers = (np.asarray(x, np.float64) for x in system)
-        # Converged when the next Gauss-Newton step would be below the thresholds (small_gicp's
-        # criterion), provided the candidates are still fresh: no point moved farther than a
-        # tenth of the correspondence distance since they were found.
-        step = _gauss_newton_step(H, b)
-        fresh = _largest_shift(T_round, T, source.radius) < 0.1 * config.max_correspondence_distance
-        small = np.linalg.norm(step[3:]) < config.rotation_eps
-        if inliers > 0 and fresh and small and np.linalg.norm(step[:3]) < config.translation_eps:
-            converged = True
-            break
-    return RegistrationResult(T, converged, iterations, int(inliers), H, b, float(error))
-
-
-def _largest_shift(T_from: np.ndarray, T_to: np.ndarray, radius: float) -> float:
-    """Upper bound on how far any source point within ``radius`` of the source origin moves
-    from ``T_from a`` to ``T_to a`` (m): the origin's shift plus the rotation's sweep."""
-    D = T_to @ np.linalg.inv(T_from)
-    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
-    return float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3]) + angle * radius)
-
-
-def _gauss_newton_step(H: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``-H^-1 b`` (6,), zero along directions H does not constrain."""
-    return -np.linalg.lstsq(H, b, rcond=1e-12)[0]
-
-
-def align(
-    target: np.ndarray,
-    source: np.ndarray,
-    init_T_target_source: np.ndarray | None = None,
-    *,
-    downsampling_resolution: float = 0.25,
-    num_neighbors: int = 20,
-    regularizer: str = "plane",
-    config: GICPConfig = GICPConfig(),
-) -> RegistrationResult:
-    """Estimate ``T_target_source`` mapping ``source`` (N, 3+) points onto ``target`` (M, 3+).
-
-    Both clouds are voxel-downsampled (``downsampling_resolution`` m), get k-NN covariances
-    (``num_neighbors``) regularised by ``regularizer`` ("plane" or "raw_eps") and are
-    registered by GICP from ``init_T_target_source`` (identity by default).
-    """
-    if regularizer not in cov.REGULARIZERS:
-        raise InputError(
-            None,
-            f"unknown regularizer {regularizer!r}; choose one of {', '.join(cov.REGULARIZERS)}",
-        )
-    kw = dict(
-        downsampling_resolution=downsampling_resolution,
-        num_neighbors=num_neighbors,
-        regularizer=regularizer,
-    )
-    tgt = prepare(target, source="target", **kw)
-    src = prepare(source, source="source", **kw)
-    return align_prepared(tgt, src, init_T_target_source, config)

@@ -1,19 +1,9 @@
-"""The two tiny MLPs of Generalized LOAM, the model record around them, and its file.
+"""The model file: the two MLPs (:mod:`gloam_jax.learned`) with the frozen PCA, Algorithm 1's
+eps, the backbone that makes the raw features, and how the model was made.
 
-Both MLPs are 6 -> 4 -> 3 with a ReLU on the hidden layer and a linear output (the paper
-says only "the ReLU activation function is used"; Algorithm 1 clamps eigenvalues at eps
-because raw outputs may be zero or negative, and the association features are distances in
-an unbounded space, so neither output is rectified). 43 parameters each: 6x4 + 4 + 4x3 + 3
-(the paper counts 46).
-
-* :class:`FeatureConversionMLP`: PCA features f (6,) -> association features f_bar (3,),
-  concatenated with xyz for the nearest-neighbour search (Eq. 3 of the paper).
-* :class:`EigenvalueEstimationMLP`: f (6,) -> raw eigenvalues (3,) for Algorithm 1
-  (:func:`gloam_jax.covariance.learned`).
-
-A :class:`GLOAMModel` adds the frozen PCA, Algorithm 1's eps and the backbone that makes the
-raw features; :func:`save_model` writes it as one ``.npz`` (arrays plus a JSON ``metadata``
-entry), :func:`load_model` reads and checks it.
+:func:`save_model` writes a :class:`GLOAMModel` as one ``.npz`` (arrays plus a JSON
+``metadata`` entry), :func:`load_model` reads and checks it; ``"default"`` names the model
+shipped with the package.
 """
 
 from __future__ import annotations
@@ -24,63 +14,31 @@ import os
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, NamedTuple, Self
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from gloam_jax import geometry as geo
 from gloam_jax.errors import InputError
+from gloam_jax.features import Backbone, get_backbone
 from gloam_jax.features.pca import FeaturePCA
 from gloam_jax.io import write_npz
+from gloam_jax.learned import (
+    DEFAULT_EPS,
+    FEATURE_DIM,
+    HIDDEN_DIM,
+    MLP,
+    OUTPUT_DIM,
+    EigenvalueEstimationMLP,
+    FeatureConversionMLP,
+    Learned,
+    check_method,
+)
 
 MODEL_FORMAT = "gloam-jax-model"
 MODEL_VERSION = 1
-FEATURE_DIM = 6  # PCA output, the MLPs' input
-HIDDEN_DIM = 4
-OUTPUT_DIM = 3
-DEFAULT_EPS = 1e-3  # Algorithm 1's eigenvalue floor, on unit-norm eigenvalue vectors
-
-
-class MLP(NamedTuple):
-    """6 -> 4 (ReLU) -> 3 (linear): w1 (6, 4), b1 (4,), w2 (4, 3), b2 (3,)."""
-
-    w1: Array
-    b1: Array
-    w2: Array
-    b2: Array
-
-    @classmethod
-    def init(cls, key: Array) -> Self:
-        """Uniform in +-1/sqrt(fan_in) (weights and biases), as torch.nn.Linear."""
-        return cls(*_init_params(key))
-
-    def __call__(self, f: Array) -> Array:
-        """Outputs (..., 3) of features (..., 6): one point or a batch."""
-        hidden = jax.nn.relu(geo.matmul(f[..., None, :], self.w1)[..., 0, :] + self.b1)
-        return geo.matmul(hidden[..., None, :], self.w2)[..., 0, :] + self.b2
-
-
-@jax.jit
-def _init_params(key: Array) -> tuple[Array, ...]:
-    # Jitted: drawn eagerly, each random op would compile on its own (seconds on a slow CPU).
-    shapes = ((FEATURE_DIM, HIDDEN_DIM), (HIDDEN_DIM,), (HIDDEN_DIM, OUTPUT_DIM), (OUTPUT_DIM,))
-    fan_ins = (FEATURE_DIM, FEATURE_DIM, HIDDEN_DIM, HIDDEN_DIM)
-    keys = jax.random.split(key, len(shapes))
-    return tuple(
-        jax.random.uniform(k, s, jnp.float32, -1.0, 1.0) / np.sqrt(f)
-        for k, s, f in zip(keys, shapes, fan_ins, strict=True)
-    )
-
-
-class FeatureConversionMLP(MLP):
-    """PCA features (..., 6) -> association features (..., 3) (Sec. III-C)."""
-
-
-class EigenvalueEstimationMLP(MLP):
-    """PCA features (..., 6) -> raw eigenvalues (..., 3) for Algorithm 1 (Sec. III-D)."""
 
 
 @dataclass(frozen=True)
@@ -91,7 +49,7 @@ class GLOAMModel:
     conversion: FeatureConversionMLP
     eigenvalue: EigenvalueEstimationMLP
     eps: float = DEFAULT_EPS
-    backbone: str = "geometric"
+    backbone_name: str = "geometric"  # with backbone_options: see backbone()
     backbone_options: dict[str, Any] = field(default_factory=dict)
     version: int = MODEL_VERSION
     provenance: dict[str, Any] = field(default_factory=dict)  # how it was made (training)
@@ -102,9 +60,18 @@ class GLOAMModel:
             raise InputError(
                 None,
                 f"features have {raw.shape[-1]} columns, the model's PCA expects "
-                f"{self.pca.input_dim} (backbone '{self.backbone}')",
+                f"{self.pca.input_dim} (backbone '{self.backbone_name}')",
             )
         return self.pca.transform(raw)
+
+    def backbone(self) -> Backbone:
+        """The backbone that makes the raw features this model's PCA expects."""
+        return get_backbone(self.backbone_name, **self.backbone_options)
+
+    @property
+    def learned(self) -> Learned:
+        """Both MLPs and eps, as the registration takes them."""
+        return Learned(self.conversion, self.eigenvalue, self.eps)
 
 
 INITS = ("random", "gicp")
@@ -147,7 +114,7 @@ def init_model(
         conversion=conversion,
         eigenvalue=eigenvalue,
         eps=float(eps),
-        backbone=backbone,
+        backbone_name=backbone,
         backbone_options=dict(backbone_options or {}),
         provenance={"init": init},
     )
@@ -168,31 +135,16 @@ def with_mlps(
     )
 
 
-# Which learned parts each method uses: (data association, covariance estimation).
-METHODS = {"gicp": (False, False), "gicp_da": (True, False), "gicp_ce": (False, True),
-           "gloam": (True, True)}  # fmt: skip
-
-
-class Learned(NamedTuple):
-    """The learned parts a registration uses, as a pytree; None keeps plain GICP's step."""
-
-    conversion: FeatureConversionMLP | None = None  # data association in [xyz, f] space
-    eigenvalue: EigenvalueEstimationMLP | None = None  # covariances by Algorithm 1
-    eps: float | Array = DEFAULT_EPS
-
-
 def learned_parts(model: GLOAMModel | None, method: str) -> Learned:
-    """The parts of ``model`` that ``method`` (a key of :data:`METHODS`) uses."""
-    if method not in METHODS:
-        raise InputError(None, f"unknown method '{method}' (choose from {', '.join(METHODS)})")
-    da, ce = METHODS[method]
-    if (da or ce) and model is None:
+    """The parts of ``model`` that ``method`` (a key of :data:`~gloam_jax.learned.METHODS`)
+    uses; plain GICP needs no model."""
+    if any(check_method(method)) and model is None:
         raise InputError(
             None, f"method '{method}' needs a model file (--weights FILE, or 'default')"
         )
     if model is None:
         return Learned()
-    return Learned(model.conversion if da else None, model.eigenvalue if ce else None, model.eps)
+    return model.learned.for_method(method)
 
 
 def _arrays(model: GLOAMModel) -> dict[str, np.ndarray]:
@@ -208,7 +160,7 @@ def save_model(path: str | os.PathLike[str], model: GLOAMModel) -> None:
         "format": MODEL_FORMAT,
         "version": model.version,
         "eps": model.eps,
-        "backbone": model.backbone,
+        "backbone": model.backbone_name,
         "backbone_options": model.backbone_options,
         "provenance": model.provenance,
     }
@@ -300,7 +252,7 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
         conversion=mlp(FeatureConversionMLP, "conversion"),
         eigenvalue=mlp(EigenvalueEstimationMLP, "eigenvalue"),
         eps=float(eps),
-        backbone=backbone,
+        backbone_name=backbone,
         backbone_options=options,
         version=MODEL_VERSION,
         provenance=provenance,

@@ -14,42 +14,30 @@ from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from gloam_jax import geometry as geo
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
-from gloam_jax.gicp import (
-    GICPConfig,
-    PreparedCloud,
-    align_prepared,
-    build_cloud,
-    increment,
-    retract_host,
-)
-from gloam_jax.models import METHODS, GLOAMModel, learned_parts, load_model
+from gloam_jax.gicp import GICPConfig, increment, retract_host
+from gloam_jax.learned import METHODS
+from gloam_jax.models import GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
+from gloam_jax.preprocess import PreprocessConfig, preprocess_scan
+from gloam_jax.registration import PreparedCloud, align_prepared, build_cloud
 
 
 @dataclass(frozen=True)
 class OdometryConfig:
-    """Odometry settings; ``gicp`` holds the registration ones."""
+    """Odometry settings; ``preprocess`` holds the scan preparation, ``gicp`` the
+    registration."""
 
     mode: Literal["frame_to_model", "frame_to_frame"] = "frame_to_model"
-    min_range: float = 3.0  # m; closer returns hit the vehicle itself
-    max_range: float = 100.0
-    downsampling_resolution: float = 0.5  # m, voxel size of each scan
-    num_neighbors: int = 10  # for the covariances (small_gicp's default)
-    regularizer: str = "plane"  # plain GICP's covariances (methods without learned ones)
-    method: Literal["gicp", "gicp_da", "gicp_ce", "gloam"] = "gicp"  # see models.METHODS
+    method: Literal["gicp", "gicp_da", "gicp_ce", "gloam"] = "gicp"  # see learned.METHODS
     model: str | None = None  # model file (learned parts) for the methods that need one
-    deskew: bool = True
-    sweep_duration: float = 0.1  # s, used when scans carry no per-point times
     keyframe_distance: float = 2.0  # m between keyframes
     keyframe_angle_deg: float = 15.0
     max_keyframes: int = 10  # local map size
@@ -58,7 +46,13 @@ class OdometryConfig:
     warmup_frames: int = 20
     degeneracy_threshold: float = 2e-4  # see weak_directions
     lever_arm: float = 10.0  # m: how rotation (rad) compares with translation in weak_directions
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     gicp: GICPConfig = field(default_factory=GICPConfig)
+
+    # Keys that moved into sections, for the error that old YAML files get.
+    MOVED: ClassVar[dict[str, str]] = {
+        k: f"preprocess.{k}" for k in (*PreprocessConfig.SCAN_FIELDS, "regularizer")
+    }
 
 
 @dataclass
@@ -73,91 +67,6 @@ class FrameStatus:
     converged: bool = False
     degenerate: bool = False  # some directions were unconstrained and kept the motion prior
     error: str = ""  # bad input that made the frame fall back on the motion prior
-
-
-def azimuth_times(points: np.ndarray, sweep_duration: float) -> np.ndarray:
-    """Per-point time (s) from mid-sweep, for a sensor that turns clockwise from behind.
-
-    ``-atan2(y, x) / (2 pi)`` is the fraction of the sweep since the forward-facing moment,
-    as KITTI's HDL-64E turns (the convention KISS-ICP uses). Returns (N,).
-    """
-    return -np.arctan2(points[:, 1], points[:, 0]) / (2 * np.pi) * sweep_duration
-
-
-@jax.jit
-def _deskew(points: jax.Array, fraction: jax.Array, xi: jax.Array) -> jax.Array:
-    """Move each point into the mid-sweep frame: ``exp(fraction * xi) @ p`` (P, 3)."""
-    T = geo.se3_exp(fraction[:, None] * xi[None, :])
-    return jnp.einsum("nij,nj->ni", T[:, :3, :3], points) + T[:, :3, 3]
-
-
-def deskew(
-    points: np.ndarray,
-    times: np.ndarray,
-    xi_per_frame: np.ndarray,
-    frame_dt: float,
-    size: int | None = None,
-) -> np.ndarray:
-    """Undo motion distortion with constant velocity: points (N, 3), times (N,) s -> (N, 3).
-    ``size``: pad to this many rows (default: the bucket size)."""
-    size = pc.bucket_size(len(points)) if size is None else size
-    padded, _ = pc.pad(np.asarray(points, np.float64), size)
-    frac, _ = pc.pad(np.asarray(times, np.float64) / frame_dt, size)
-    # float32 unless JAX runs in x64 mode: jnp.asarray picks the default precision.
-    xi = np.asarray(xi_per_frame, np.float64)
-    out = _deskew(jnp.asarray(padded), jnp.asarray(frac), jnp.asarray(xi))
-    return np.asarray(out, dtype=np.float64)[: len(points)]
-
-
-def preprocess_scan(
-    scan: np.ndarray,
-    times: np.ndarray | None,
-    config: OdometryConfig,
-    *,
-    velocity: np.ndarray | None = None,
-    frame_dt: float = 0.1,
-    model: GLOAMModel | None = None,
-    features: np.ndarray | None = None,
-    buckets: pc.StickyBuckets | None = None,
-    source: str | None = None,
-) -> tuple[np.ndarray, np.ndarray | None, int, int]:
-    """One raw scan (N, 3+) -> its voxel centres (M, 3) float64, deskewed with ``velocity``
-    (se(3) per ``frame_dt``; None: not deskewed), their PCA features (M, 6) when ``model`` is
-    given (from the backbone's ``features`` (N, D)), the number of NaN / inf points dropped
-    and the number of voxel centres thinned out.
-
-    ``times`` (N,) s from the reference time, or None for times from the azimuth. ``buckets``
-    size the deskew's padding (role "scan"); once frozen, centres beyond their limit are
-    thinned evenly along the voxel order (so evenly in space). Raises InputError for scans
-    without points in range and for features of the wrong length.
-    """
-    keep, dropped = pc.range_mask(scan, config.min_range, config.max_range, source)
-    points = scan[keep, :3].astype(np.float64)
-    if len(points) == 0:
-        raise InputError(source, f"no points between {config.min_range} and {config.max_range} m")
-    t = times[keep] if times is not None else azimuth_times(points, config.sweep_duration)
-    columns = [np.column_stack([points, t])]
-    if model is not None:
-        if features is None or len(features) != len(scan):
-            rows = "no" if features is None else len(features)
-            raise InputError(source, f"features have {rows} rows but the scan has {len(scan)}")
-        # The PCA is affine, so it commutes with the voxel mean: carry 6 columns, not D.
-        columns.append(model.pca_features(features)[keep])
-    # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
-    # few voxel centres with their mean time; features are averaged per voxel alike.
-    columns = pc.voxel_means(points, config.downsampling_resolution, columns)
-    limit = None if buckets is None else buckets.limit("scan")
-    thinned = 0
-    if limit is not None and len(columns[0]) > limit:
-        thinned = len(columns[0]) - limit
-        rows = np.linspace(0, len(columns[0]) - 1, limit).round().astype(np.int64)
-        columns = [c[rows] for c in columns]
-    reduced, pca = columns[0], (columns[1] if model is not None else None)
-    points = reduced[:, :3]
-    if config.deskew and velocity is not None:
-        size = None if buckets is None else buckets("scan", len(points))
-        points = deskew(points, reduced[:, 3], velocity, frame_dt, size)
-    return points, pca, dropped, thinned
 
 
 class LocalMap:
@@ -280,14 +189,13 @@ class Odometry:
         source: str | None,
         features: np.ndarray | None,
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        cfg = self.config
         points, pca, status.num_dropped, status.num_thinned = preprocess_scan(
             scan,
             times,
-            cfg,
+            self.config.preprocess,
             velocity=self.velocity if self.poses else None,
             frame_dt=frame_dt,
-            model=self.model if self.needs_features else None,
+            pca=self.model.pca if self.needs_features else None,
             features=features,
             buckets=self.buckets,
             source=source,
@@ -322,8 +230,9 @@ class Odometry:
         try:
             points, pca = self._preprocess(scan, times, frame_dt, status, source, features)
             scan_size = self.buckets("scan", len(points))
+            prep = cfg.preprocess
             cloud = build_cloud(
-                points, cfg.num_neighbors, cfg.regularizer, source, scan_size, pca, self.learned
+                points, prep.num_neighbors, prep.regularizer, source, scan_size, pca, self.learned
             )
         except InputError as err:
             status.error = str(err)

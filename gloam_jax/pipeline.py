@@ -54,7 +54,7 @@ def run_sequence(
     for i in range(n):
         scan = seq.scan(i)
         point_times = seq.point_times(i)
-        frame_dt = float(times[i] - times[i - 1]) if i > 0 else config.sweep_duration
+        frame_dt = float(times[i] - times[i - 1]) if i > 0 else config.preprocess.sweep_duration
         path = seq.scan_path(i)
         features = None
         if backbone is not None:
@@ -79,8 +79,7 @@ def _backbone(odometry: Odometry, features_dir: str | Path | None) -> Backbone |
         return None
     if features_dir is not None:
         return get_backbone("precomputed", folder=features_dir)
-    model = odometry.model
-    return get_backbone(model.backbone, **model.backbone_options)
+    return odometry.model.backbone()
 
 
 def write_run(seq: io.KittiSequence, odometry: Odometry, config: OdometryConfig,

@@ -5,7 +5,7 @@
 Prepares the training windows of the config (cached with ``--cache``), then registers every
 pair (a) all at once, ``jit(vmap(register_pair))``, (b) in a Python loop over the same
 jitted single-pair function, with the same candidate sets, rounds and model (the estimates
-must agree), and (c) in a loop of the odometry's registration, ``gicp.align_prepared``, on
+must agree), and (c) in a loop of the odometry's registration, ``registration.align_prepared``, on
 the same source points, target scans and initial guesses (k-d tree candidates refreshed on
 the host every round, until converged). Timed after compilation, best of ``--repeats``.
 Prints registrations/s and each path's mean t_err over the windows.
@@ -23,12 +23,13 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from gloam_jax import batch
 from gloam_jax.config import load_config
-from gloam_jax.gicp import GICPConfig, PreparedCloud, align_prepared, attributes
 from gloam_jax.io import write_atomic
+from gloam_jax.learned import attributes
 from gloam_jax.models import learned_parts
 from gloam_jax.neighbors import KdTree
+from gloam_jax.registration import PreparedCloud, align_prepared
+from gloam_jax.training import batch
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.problem import setup
 
@@ -45,7 +46,7 @@ def best_of(repeats: int, fn, *args) -> tuple[float, object]:
 def align_loop(data: batch.BatchData, learned, config: batch.BatchConfig):
     """(c): a function running align_prepared over every pair, and the clouds it uses."""
     scans, pairs = data.scans, data.pairs
-    attrs = jax.jit(lambda v, V, f: attributes(v, V, f, learned, "plane"))
+    attrs = jax.jit(lambda v, V, f: attributes(v, V, f, learned, data.regularizer))
     clouds = []
     for s in range(scans.points.shape[0]):
         m = np.asarray(scans.mask[s])
@@ -60,9 +61,9 @@ def align_loop(data: batch.BatchData, learned, config: batch.BatchConfig):
         rows = np.asarray(pairs.rows[b])[np.asarray(pairs.row_mask[b])]
         sub = None if f is None else f[rows]
         sources.append(PreparedCloud(p[rows], c[rows], KdTree(p[rows]), sub))
-    gicp = GICPConfig(
-        max_correspondence_distance=config.max_correspondence_distance,
-        num_candidates=config.num_candidates if learned.conversion is not None else 1,
+    gicp = dataclasses.replace(
+        config.gicp,
+        num_candidates=config.gicp.num_candidates if learned.conversion is not None else 1,
     )
     T_init = np.asarray(pairs.T_init, np.float64)
     target_of = np.asarray(pairs.target)
@@ -97,21 +98,21 @@ def main() -> None:
     problem = setup(cfg, args.run, cache_dir=args.cache)
     data, config = problem.data, dataclasses.replace(cfg.batch, association="hard")
     # Data as arguments, not closed-over constants, which XLA would try to fold (minutes).
-    register_pairs = jax.jit(batch.register_pairs, static_argnums=3)
-    one = jax.jit(batch.register_pair, static_argnums=3)
+    register_pairs = jax.jit(batch.register_pairs, static_argnums=(3, 4))
+    one = jax.jit(batch.register_pair, static_argnums=(3, 4))
     pairs = [jax.tree_util.tree_map(lambda x, b=b: x[b], data.pairs) for b in range(data.num_pairs)]
 
     def batched(learned):
-        return register_pairs(learned, data.scans, data.pairs, config)
+        return register_pairs(learned, data.scans, data.pairs, config, data.regularizer)
 
     def loop(learned):
-        return [one(learned, data.scans, p, config) for p in pairs]
+        return [one(learned, data.scans, p, config, data.regularizer) for p in pairs]
 
     rows = []
     for method in args.methods.split(","):
         learned = learned_parts(problem.model, method)
         jax.block_until_ready(batched(learned))
-        jax.block_until_ready(one(learned, data.scans, pairs[0], config))
+        jax.block_until_ready(one(learned, data.scans, pairs[0], config, data.regularizer))
         t_batch, T_batch = best_of(args.repeats, batched, learned)
         t_loop, T_loop = best_of(args.repeats, loop, learned)
         diff = float(np.max(np.abs(np.asarray(T_batch) - np.stack(T_loop))))

@@ -45,7 +45,6 @@ def run_ours(seq: io.KittiSequence, n: int, config_path: Path, weights: Path | N
     import dataclasses
 
     from gloam_jax.config import load_config
-    from gloam_jax.features import get_backbone
     from gloam_jax.odometry import Odometry
 
     config = load_config(config_path)
@@ -54,7 +53,7 @@ def run_ours(seq: io.KittiSequence, n: int, config_path: Path, weights: Path | N
     odometry = Odometry(config)
     backbone = None
     if odometry.needs_features:
-        backbone = get_backbone(odometry.model.backbone, **odometry.model.backbone_options)
+        backbone = odometry.model.backbone()
     times, ms, feature_ms, late_compiles = seq.times, [], [], 0
     for i in range(n):
         scan, point_times = seq.scan(i), seq.point_times(i)

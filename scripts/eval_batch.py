@@ -18,12 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from gloam_jax import batch
 from gloam_jax.config import load_config
-from gloam_jax.features import get_backbone
 from gloam_jax.io import write_atomic
-from gloam_jax.models import Learned, learned_parts, load_model
+from gloam_jax.learned import Learned
+from gloam_jax.models import learned_parts, load_model
+from gloam_jax.training.batch import Evaluator
 from gloam_jax.training.config import TrainConfig
+from gloam_jax.training.data import load_windows
 
 
 def main() -> None:
@@ -43,11 +44,10 @@ def main() -> None:
     for label, model in loaded.items():
         if not all(np.array_equal(a, b) for a, b in zip(model.pca, first.pca, strict=True)):
             raise SystemExit(f"{label}: its PCA differs from the first model's")
-    backbone = get_backbone(first.backbone, **first.backbone_options)
     sequences = args.sequences.split(",")
-    data = batch.load_windows(cfg.data, sequences, cfg.odometry, config, first, backbone,
-                              frames=cfg.frames, cache_dir=args.cache)  # fmt: skip
-    evaluate = batch.Evaluator(data, config)
+    data = load_windows(cfg.data, sequences, cfg.preprocess, config, first.pca, first.backbone(),
+                        frames=cfg.frames, cache_dir=args.cache)  # fmt: skip
+    evaluate = Evaluator(data, config)
     rows = {"GICP": evaluate(Learned())}
     rows |= {label: evaluate(learned_parts(m, args.method)) for label, m in loaded.items()}
     print("| method | " + " | ".join(sequences) + " | mean |")

@@ -89,7 +89,7 @@ def main() -> None:
     else:
         model = None
         label = f"learned (random init, seed {args.seed})"
-    backbone = get_backbone(model.backbone, **model.backbone_options) if model else get_backbone()
+    backbone = model.backbone() if model else get_backbone()
     raw_features = backbone(scan, path=args.scan)
     if model is None:
         model = init_model(jax.random.PRNGKey(args.seed), fit_pca(raw_features))

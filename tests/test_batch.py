@@ -6,18 +6,20 @@ import jax
 import numpy as np
 import pytest
 
-from gloam_jax import batch, io
+from gloam_jax import io
 from gloam_jax.errors import InputError
-from gloam_jax.models import Learned
-from gloam_jax.odometry import OdometryConfig
+from gloam_jax.learned import Learned
+from gloam_jax.preprocess import PreprocessConfig
+from gloam_jax.training import batch
+from gloam_jax.training.data import load_windows, prepare_scans
 
-ODOMETRY = OdometryConfig(downsampling_resolution=0.5)
+PREPROCESS = PreprocessConfig(downsampling_resolution=0.5)
 CONFIG = batch.BatchConfig(rounds=3, max_source_points=400, segment_fractions=(0.3, 0.6))
 
 
 @pytest.fixture(scope="module")
 def data(sim_sequence):
-    return batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=12)
+    return load_windows(sim_sequence, ["00"], PREPROCESS, CONFIG, frames=12)
 
 
 def test_shapes(data):
@@ -30,8 +32,8 @@ def test_shapes(data):
 
 
 def test_batch_recovers_ground_truth_motion(data, sim_sequence):
-    T_rel = np.asarray(jax.jit(batch.register_pairs, static_argnums=3)(
-        Learned(), data.scans, data.pairs, CONFIG))  # fmt: skip
+    T_rel = np.asarray(jax.jit(batch.register_pairs, static_argnums=(3, 4))(
+        Learned(), data.scans, data.pairs, CONFIG, "plane"))  # fmt: skip
     gt = io.KittiSequence(sim_sequence, "00").gt_poses_lidar[:12]
     rel_gt = np.linalg.inv(gt[:-1]) @ gt[1:]
     err = np.linalg.inv(rel_gt) @ T_rel
@@ -46,11 +48,11 @@ def test_batch_recovers_ground_truth_motion(data, sim_sequence):
 
 def test_vmap_matches_one_at_a_time(data):
     T_batch = np.asarray(batch.Evaluator(data, CONFIG)(Learned()).T_rel)
-    one = jax.jit(batch.register_pair, static_argnums=3)
+    one = jax.jit(batch.register_pair, static_argnums=(3, 4))
     for b in (0, 5, 10):
         pair = jax.tree_util.tree_map(lambda x, b=b: x[b], data.pairs)
         np.testing.assert_allclose(
-            np.asarray(one(Learned(), data.scans, pair, CONFIG)), T_batch[b], atol=2e-5
+            np.asarray(one(Learned(), data.scans, pair, CONFIG, "plane")), T_batch[b], atol=2e-5
         )
 
 
@@ -72,11 +74,11 @@ def test_evaluator_errors_match_the_loss(data):
 
 
 def test_window_cache_round_trip(sim_sequence, tmp_path, data):
-    cached = batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=12,
+    cached = load_windows(sim_sequence, ["00"], PREPROCESS, CONFIG, frames=12,
                                 cache_dir=tmp_path)  # fmt: skip
     assert len(list(tmp_path.glob("scans_00_*.npz"))) == 1
     assert len(list(tmp_path.glob("pairs_00_*.npz"))) == 1
-    again = batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=12,
+    again = load_windows(sim_sequence, ["00"], PREPROCESS, CONFIG, frames=12,
                                cache_dir=tmp_path)  # fmt: skip
     leaves = [jax.tree_util.tree_leaves((d.scans, d.pairs)) for d in (data, cached, again)]
     for a, b, c in zip(*leaves, strict=True):
@@ -90,7 +92,7 @@ def test_local_map_targets(sim_sequence, tmp_path, data):
     the ground truth."""
     config = dataclasses.replace(CONFIG, map_scans=3, map_stride=2)
     for c in (CONFIG, config):
-        mapped = batch.load_windows(sim_sequence, ["00"], ODOMETRY, c, frames=12,
+        mapped = load_windows(sim_sequence, ["00"], PREPROCESS, c, frames=12,
                                     cache_dir=tmp_path)  # fmt: skip
     assert len(list(tmp_path.glob("scans_00_*.npz"))) == 1
     assert len(list(tmp_path.glob("pairs_00_*.npz"))) == 2
@@ -114,20 +116,17 @@ def test_local_map_targets(sim_sequence, tmp_path, data):
 
 def test_bad_input(sim_sequence, tmp_path):
     with pytest.raises(InputError, match="at least 2 scans"):
-        batch.load_windows(sim_sequence, ["00"], ODOMETRY, CONFIG, frames=1)
+        load_windows(sim_sequence, ["00"], PREPROCESS, CONFIG, frames=1)
     with pytest.raises(InputError, match="backbone"):
-        from gloam_jax.models import init_model
-
-        batch.prepare_window(io.KittiSequence(sim_sequence, "00"), range(3), ODOMETRY, CONFIG,
-                             model=init_model(jax.random.PRNGKey(0), _pca()))  # fmt: skip
+        prepare_scans(io.KittiSequence(sim_sequence, "00"), range(3), PREPROCESS, pca=_pca())
     with pytest.raises(InputError, match="inner_steps"):
-        dataclasses.replace(CONFIG, inner_steps=1)
+        dataclasses.replace(CONFIG, gicp=dataclasses.replace(CONFIG.gicp, inner_steps=1))
     with pytest.raises(InputError, match="map_scans"):
         dataclasses.replace(CONFIG, map_scans=0)
     # A sequence without ground truth cannot be trained or scored on.
     (tmp_path / "sequences").symlink_to(sim_sequence / "sequences")
     with pytest.raises(InputError, match="ground truth"):
-        batch.load_windows(tmp_path, ["00"], ODOMETRY, CONFIG, frames=3)
+        load_windows(tmp_path, ["00"], PREPROCESS, CONFIG, frames=3)
 
 
 def _pca():

@@ -11,8 +11,9 @@ from gloam_jax import geometry as geo
 from gloam_jax import io
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
-from gloam_jax.gicp import GICPConfig, align, prepare
+from gloam_jax.gicp import GICPConfig
 from gloam_jax.neighbors import KdTree
+from gloam_jax.registration import align, prepare
 
 PAIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real_pair"
 
@@ -148,11 +149,11 @@ def test_agrees_with_small_gicp():
 
 def test_bad_input():
     with pytest.raises(InputError, match="empty scan"):
-        prepare(np.zeros((0, 3)), source="a.bin")
+        prepare(np.zeros((0, 3)), name="a.bin")
     with pytest.raises(InputError, match="a.bin: all 5 points are NaN"):
-        prepare(np.full((5, 3), np.nan), source="a.bin")
+        prepare(np.full((5, 3), np.nan), name="a.bin")
     with pytest.raises(InputError, match="too few points for 20 neighbours"):
-        prepare(np.random.default_rng(0).normal(size=(10, 3)), source="a.bin")
+        prepare(np.random.default_rng(0).normal(size=(10, 3)), name="a.bin")
     pts = structured_scene(0, 4000)
     pts[::100] = np.nan
     cloud = prepare(pts, downsampling_resolution=0.0)

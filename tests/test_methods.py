@@ -13,9 +13,10 @@ from gloam_jax import io
 from gloam_jax.cli import app
 from gloam_jax.errors import InputError
 from gloam_jax.features import fit_pca, get_backbone
-from gloam_jax.gicp import GICPConfig, align_prepared, build_cloud
+from gloam_jax.gicp import GICPConfig
 from gloam_jax.models import init_model, learned_parts, save_model
 from gloam_jax.odometry import Odometry, OdometryConfig
+from gloam_jax.registration import align_prepared, build_cloud
 
 
 @pytest.fixture(scope="module")

@@ -10,14 +10,8 @@ import pytest
 from gloam_jax import covariance as cov
 from gloam_jax.errors import InputError
 from gloam_jax.features import fit_pca
-from gloam_jax.models import (
-    EigenvalueEstimationMLP,
-    FeatureConversionMLP,
-    GLOAMModel,
-    init_model,
-    load_model,
-    save_model,
-)
+from gloam_jax.learned import EigenvalueEstimationMLP, FeatureConversionMLP
+from gloam_jax.models import GLOAMModel, init_model, load_model, save_model
 
 # Jitted once: op-by-op dispatch compiles every primitive separately, which is slower.
 learned = jax.jit(cov.learned)
@@ -120,7 +114,7 @@ def test_model_round_trip(tmp_path, model):
     save_model(path, m)
     loaded = load_model(path)
     assert isinstance(loaded, GLOAMModel)
-    assert (loaded.eps, loaded.backbone, loaded.backbone_options) == (
+    assert (loaded.eps, loaded.backbone_name, loaded.backbone_options) == (
         2e-3,
         "geometric",
         {"voxel_size": 0.25},
@@ -196,7 +190,7 @@ def test_provenance_round_trip(tmp_path, model):
 
 def test_shipped_model_loads_and_says_how_it_was_trained():
     shipped = load_model("default")
-    assert shipped.backbone == "geometric"
+    assert shipped.backbone_name == "geometric"
     assert shipped.provenance["mode"] in ("tpe", "grad")
     # Trained on windows of the training trajectories only (3N: a second window of 0N).
     from gloam_jax.training.protocol import EXTRA_TRAINING_WINDOWS, TRAIN_SEQUENCES

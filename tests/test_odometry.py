@@ -13,15 +13,10 @@ from gloam_jax import io
 from gloam_jax.cli import app
 from gloam_jax.config import dump_config, load_config
 from gloam_jax.errors import InputError
-from gloam_jax.gicp import GICPConfig, align_prepared, prepare
-from gloam_jax.odometry import (
-    Odometry,
-    OdometryConfig,
-    azimuth_times,
-    deskew,
-    remap,
-    weak_directions,
-)
+from gloam_jax.gicp import GICPConfig
+from gloam_jax.odometry import Odometry, OdometryConfig, remap, weak_directions
+from gloam_jax.preprocess import azimuth_times, deskew
+from gloam_jax.registration import align_prepared, prepare
 
 
 def test_azimuth_times_match_the_simulated_timestamps(sim_sequence):
@@ -160,9 +155,39 @@ def test_config_round_trip_and_errors(tmp_path):
     (tmp_path / "bad2.yaml").write_text("mode: sideways\n")
     with pytest.raises(InputError, match="mode must be one of"):
         load_config(tmp_path / "bad2.yaml")
-    (tmp_path / "bad3.yaml").write_text("max_range: far\n")
-    with pytest.raises(InputError, match="max_range must be a number"):
+    (tmp_path / "bad3.yaml").write_text("preprocess:\n  max_range: far\n")
+    with pytest.raises(InputError, match="preprocess.max_range must be a number"):
         load_config(tmp_path / "bad3.yaml")
+
+
+def test_old_config_keys_name_their_new_place(tmp_path):
+    from gloam_jax.training.config import TrainConfig
+
+    (tmp_path / "old.yaml").write_text("min_range: 2.0\n")
+    with pytest.raises(InputError, match="'min_range' moved to 'preprocess.min_range'"):
+        load_config(tmp_path / "old.yaml")
+    (tmp_path / "old_train.yaml").write_text("odometry:\n  min_range: 2.0\n")
+    with pytest.raises(InputError, match="'odometry' moved to 'preprocess'"):
+        load_config(tmp_path / "old_train.yaml", TrainConfig)
+    (tmp_path / "old_batch.yaml").write_text("batch:\n  inner_steps: 3\n")
+    with pytest.raises(InputError, match="'batch.inner_steps' moved to 'batch.gicp.inner_steps'"):
+        load_config(tmp_path / "old_batch.yaml", TrainConfig)
+
+
+def test_a_partial_section_keeps_its_parents_defaults(tmp_path):
+    from gloam_jax.training.config import TrainConfig
+
+    (tmp_path / "t.yaml").write_text("batch:\n  gicp:\n    inner_steps: 3\n")
+    batch = load_config(tmp_path / "t.yaml", TrainConfig).batch
+    assert batch.gicp.inner_steps == 3 and batch.gicp.num_candidates == 5  # the batch's default
+
+
+def test_configs_by_name_are_the_shipped_files():
+    root = Path(__file__).resolve().parents[1] / "configs"
+    assert load_config("gloam") == load_config(root / "gloam.yaml")
+    assert load_config("gloam").method == "gloam"
+    with pytest.raises(InputError, match="nor a shipped config"):
+        load_config("glom")
 
 
 def test_gloam_run_writes_the_run_folder(sim_sequence, tmp_path):

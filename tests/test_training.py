@@ -10,15 +10,17 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from gloam_jax import batch
 from gloam_jax.cli import app
 from gloam_jax.config import dump_config
 from gloam_jax.features import get_backbone
+from gloam_jax.learned import Learned
 from gloam_jax.models import load_model
-from gloam_jax.odometry import OdometryConfig
+from gloam_jax.preprocess import PreprocessConfig
+from gloam_jax.training import batch
 from gloam_jax.training.config import GradConfig, TPEConfig, TrainConfig
+from gloam_jax.training.data import load_windows
 from gloam_jax.training.grad import train_grad
-from gloam_jax.training.problem import Params, fit_initial_model, setup
+from gloam_jax.training.problem import fit_initial_model, setup
 from gloam_jax.training.tpe import train_tpe
 
 TINY = batch.BatchConfig(
@@ -41,16 +43,15 @@ def test_gradient_matches_finite_differences(sim_sequence, model, adjoint):
     try:
         # Implicit differentiation assumes converged solves: give LM enough steps.
         inner = 3 if adjoint == "unrolled" else 12
-        config = dataclasses.replace(TINY, adjoint=adjoint, inner_steps=inner, temperature=0.2)
-        backbone = get_backbone(model.backbone, **model.backbone_options)
-        data = batch.load_windows(sim_sequence, ["00"], OdometryConfig(), config, model,
-                                  backbone, frames=5)  # fmt: skip
+        gicp = dataclasses.replace(TINY.gicp, adjoint=adjoint, inner_steps=inner)
+        config = dataclasses.replace(TINY, gicp=gicp, temperature=0.2)
+        data = load_windows(sim_sequence, ["00"], PreprocessConfig(), config, model.pca,
+                            model.backbone(), frames=5)  # fmt: skip
         f64 = lambda tree: jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), tree)  # noqa: E731
-        params = f64(Params(model.conversion, model.eigenvalue))
+        params = f64((model.conversion, model.eigenvalue))  # the weights; eps is fixed
 
         def loss(p):
-            learned = batch.Learned(p.conversion, p.eigenvalue, model.eps)
-            return batch.loss(learned, data, config)
+            return batch.loss(Learned(*p, model.eps), data, config)
 
         value, grad = jax.jit(jax.value_and_grad(loss))(params)
         assert np.isfinite(float(value)) and float(value) > 0
@@ -79,7 +80,7 @@ def _config(sim_sequence, tmp_path, model, **kw) -> TrainConfig:
         sequences=("00",),
         frames=6,
         init_model=str(tmp_path / "start.npz"),
-        batch=dataclasses.replace(TINY, adjoint="implicit"),
+        batch=dataclasses.replace(TINY, gicp=dataclasses.replace(TINY.gicp, adjoint="implicit")),
         **kw,
     )
 
@@ -115,7 +116,8 @@ def test_tpe_runs_resumes_and_exports(sim_sequence, tmp_path, model):
     loaded = load_model(run / "model.npz")
     assert loaded.provenance["mode"] == "tpe"
     assert loaded.provenance["train_t_err"] == pytest.approx(history[-1]["best_t_err"])
-    got = problem.training_loss(Params(loaded.conversion, loaded.eigenvalue))[0]
+    got = problem.training_loss(problem.init_params._replace(
+        conversion=loaded.conversion, eigenvalue=loaded.eigenvalue))[0]  # fmt: skip
     assert got == pytest.approx(history[-1]["best_t_err"], rel=1e-5)
     assert trained.provenance["trials"] == 3 and (run / "loss_curve.png").stat().st_size > 0
 

@@ -8,13 +8,14 @@ code without scikit-learn: ``f = ((x - mean) / scale) @ components.T``.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
-from jax import Array
-from sklearn.decomposition import PCA
 
 from gloam_jax.errors import InputError
+
+if TYPE_CHECKING:
+    from jax import Array
 
 # Columns whose spread is below this count as constant: standardising leaves them alone
 # instead of blowing their rounding noise up to unit variance.
@@ -74,6 +75,8 @@ def fit_pca(
     mean = x.mean(axis=0)
     scale = x.std(axis=0) if standardize else np.ones(x.shape[1])
     scale = np.where(scale > _MIN_SCALE, scale, 1.0)
+    from sklearn.decomposition import PCA  # only for fitting, which runs once
+
     pca = PCA(n_components=n_components, svd_solver="full").fit((x - mean) / scale)
     # Fold scikit-learn's own centring (zero up to rounding here) into the stored mean.
     return FeaturePCA(

@@ -1,18 +1,19 @@
 """Training settings: what to train on, how to register, and each mode's own knobs.
 
 A ``configs/train_*.yaml`` file holds the fields of :class:`TrainConfig`; the nested
-``odometry`` (preprocessing: range crop, voxel size, k-NN), ``batch`` (registrations), ``tpe``
-and ``grad`` sections take the fields of their classes.
+``preprocess`` (range crop, voxel size, k-NN, regulariser: as the odometry's), ``batch``
+(registrations, with their ``gicp`` settings), ``tpe`` and ``grad`` sections take the fields
+of their classes.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import ClassVar, Literal
 
-from gloam_jax.batch import BatchConfig
 from gloam_jax.errors import InputError
-from gloam_jax.odometry import OdometryConfig
+from gloam_jax.preprocess import PreprocessConfig
+from gloam_jax.training.batch import BatchConfig
 from gloam_jax.training.protocol import TRAIN_SEQUENCES
 
 
@@ -58,7 +59,9 @@ class TrainConfig:
     init: Literal["random", "gicp"] = "gicp"  # without init_model: how the MLPs start
     pca_every: int = 25  # without init_model: fit the PCA on every N-th training scan
     seed: int = 0
-    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     batch: BatchConfig = field(default_factory=BatchConfig)
     tpe: TPEConfig = field(default_factory=TPEConfig)
     grad: GradConfig = field(default_factory=GradConfig)
+
+    MOVED: ClassVar[dict[str, str]] = {"odometry": "preprocess"}

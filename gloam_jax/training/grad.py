@@ -1,7 +1,7 @@
 """The extension the paper's conclusion asks for: gradients of the relative trajectory error
 with respect to the MLP weights, through the GICP solves, with optax's Adam.
 
-The loss is :func:`gloam_jax.batch.loss` (Eq. 8 over the training windows, frame-to-frame),
+The loss is :func:`gloam_jax.training.batch.loss` (Eq. 8 over the training windows, frame-to-frame),
 with the batch settings of the run: soft association gives the conversion MLP a gradient
 through the choice among candidates; ``adjoint`` picks optimistix's unrolled
 (``RecursiveCheckpointAdjoint``) or implicit (``ImplicitAdjoint``) differentiation of the LM
@@ -23,9 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from gloam_jax import batch, io
+from gloam_jax import io
 from gloam_jax.errors import InputError
-from gloam_jax.training.problem import Clock, Params, Problem, plot_histories, write_history
+from gloam_jax.learned import Learned
+from gloam_jax.training import batch
+from gloam_jax.training.problem import Clock, Problem, plot_histories, write_history
 
 CHECKPOINT = "checkpoint.npz"
 
@@ -92,8 +94,8 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
 
     data, config = problem.data, problem.config.batch
 
-    def loss(p: Params, scans, pairs):
-        return batch.loss(problem.learned(p), batch.BatchData(scans, pairs, data.windows), config)
+    def loss(p: Learned, scans, pairs):
+        return batch.loss(p, batch.BatchData(scans, pairs, data.windows, data.regularizer), config)
 
     rows = data.pairs.rows.shape[1]
     subset = rows if cfg.source_points is None else min(cfg.source_points, rows)
@@ -114,7 +116,7 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
 
         return keep(new_p, p), keep(new_s, s), value, ok
 
-    def evaluate(p: Params, at: int, soft: float | None) -> None:
+    def evaluate(p: Learned, at: int, soft: float | None) -> None:
         nonlocal best, best_params
         t_err, r_err = problem.training_loss(p)
         if t_err < best:

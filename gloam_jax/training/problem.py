@@ -15,35 +15,23 @@ import time
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from gloam_jax import io
-from gloam_jax.batch import BatchData, Evaluator, load_windows
 from gloam_jax.config import config_dict, dump_config
 from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone, fit_pca, get_backbone
-from gloam_jax.models import (
-    METHODS,
-    GLOAMModel,
-    Learned,
-    init_model,
-    load_model,
-    save_model,
-    with_mlps,
-)
+from gloam_jax.learned import Learned
+from gloam_jax.models import GLOAMModel, init_model, load_model, save_model, with_mlps
+from gloam_jax.training.batch import BatchData, Evaluator
 from gloam_jax.training.config import TrainConfig
+from gloam_jax.training.data import load_windows
 
 Progress = Callable[[str, int, int], None]  # (what, done, total)
-
-
-class Params(NamedTuple):
-    """The trainable weights: both MLPs (a method that uses one leaves the other unchanged)."""
-
-    conversion: Any
-    eigenvalue: Any
 
 
 def fit_initial_model(
@@ -87,28 +75,19 @@ class Problem:
     evaluate_hard: Evaluator  # the training loss as reported (hard association)
 
     @property
-    def init_params(self) -> Params:
-        return Params(self.model.conversion, self.model.eigenvalue)
+    def init_params(self) -> Learned:
+        """The trainable parameters at the start: the MLPs the method uses (the other None)
+        and eps as a fixed array leaf (its gradient is stopped)."""
+        start = self.model.learned.for_method(self.config.method)
+        return start._replace(eps=jnp.asarray(self.model.eps, jnp.float32))
 
-    @property
-    def uses(self) -> tuple[bool, bool]:
-        """Whether the method uses (conversion, eigenvalue)."""
-        return METHODS[self.config.method]
-
-    def learned(self, params: Params) -> Learned:
-        """The parts the method uses, with ``params``'s weights."""
-        da, ce = self.uses
-        return Learned(
-            params.conversion if da else None, params.eigenvalue if ce else None, self.model.eps
-        )
-
-    def training_loss(self, params: Params) -> tuple[float, float]:
+    def training_loss(self, params: Learned) -> tuple[float, float]:
         """Mean t_err (fraction) and r_err (rad/m) over the training windows, hard
         association: the number both modes are compared on."""
-        result = self.evaluate_hard(self.learned(params))
+        result = self.evaluate_hard(params)
         return float(np.mean(result.t_err)), float(np.mean(result.r_err))
 
-    def export(self, params: Params, path: Path, extra: dict[str, Any]) -> GLOAMModel:
+    def export(self, params: Learned, path: Path, extra: dict[str, Any]) -> GLOAMModel:
         """Write ``params`` as a model file with its provenance; returns the model."""
         provenance = {
             "mode": self.config.mode,
@@ -118,7 +97,9 @@ class Problem:
             "config": config_dict(self.config),
             **extra,
         }
-        model = with_mlps(self.model, params.conversion, params.eigenvalue, provenance)
+        conversion = self.model.conversion if params.conversion is None else params.conversion
+        eigenvalue = self.model.eigenvalue if params.eigenvalue is None else params.eigenvalue
+        model = with_mlps(self.model, conversion, eigenvalue, provenance)
         save_model(path, model)
         return model
 
@@ -173,7 +154,7 @@ def setup(
             progress=progress,
         )
         save_model(start, model)
-    backbone = get_backbone(model.backbone, **model.backbone_options)
+    backbone = model.backbone()
 
     def step(name: str, total: int, k: int) -> None:
         if progress is not None:
@@ -182,9 +163,9 @@ def setup(
     data = load_windows(
         config.data,
         config.sequences,
-        config.odometry,
+        config.preprocess,
         config.batch,
-        model,
+        model.pca,
         backbone,
         frames=config.frames,
         cache_dir=run_dir / "cache" if cache_dir is None else cache_dir,

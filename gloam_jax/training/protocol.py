@@ -14,7 +14,7 @@ TRAIN_SEQUENCES: tuple[str, ...] = ("01", "03", "05", "07", "09")
 TEST_SEQUENCES: tuple[str, ...] = ("00", "02", "04", "06", "08", "10")
 
 
-class Window(NamedTuple):
+class SimWindow(NamedTuple):
     """A simulated window of a KITTI sequence: scene style and first pose index."""
 
     style: str
@@ -22,27 +22,27 @@ class Window(NamedTuple):
 
 
 # Starts are chosen so that 120 frames cover 70-180 m (the car moves in each window).
-WINDOWS: dict[str, Window] = {
-    "00": Window("urban", 0),
-    "01": Window("highway", 0),
-    "02": Window("suburban", 0),
-    "03": Window("suburban", 300),
-    "04": Window("highway", 0),
-    "05": Window("suburban", 0),
-    "06": Window("suburban", 0),
-    "07": Window("urban", 500),
-    "08": Window("urban", 100),
-    "09": Window("suburban", 0),
-    "10": Window("suburban", 100),
+WINDOWS: dict[str, SimWindow] = {
+    "00": SimWindow("urban", 0),
+    "01": SimWindow("highway", 0),
+    "02": SimWindow("suburban", 0),
+    "03": SimWindow("suburban", 300),
+    "04": SimWindow("highway", 0),
+    "05": SimWindow("suburban", 0),
+    "06": SimWindow("suburban", 0),
+    "07": SimWindow("urban", 500),
+    "08": SimWindow("urban", 100),
+    "09": SimWindow("suburban", 0),
+    "10": SimWindow("suburban", 100),
 }
 DEFAULT_FRAMES = 120
 
 # Second training windows of the training sequences, under ids KITTI does not use (3N is a
 # second window of 0N): more training data, still only from the training trajectories.
-EXTRA_TRAINING_WINDOWS: dict[str, tuple[str, Window]] = {
-    "31": ("01", Window("highway", 600)),
-    "33": ("03", Window("suburban", 500)),
-    "35": ("05", Window("suburban", 1500)),
-    "37": ("07", Window("urban", 800)),
-    "39": ("09", Window("suburban", 800)),
+EXTRA_TRAINING_WINDOWS: dict[str, tuple[str, SimWindow]] = {
+    "31": ("01", SimWindow("highway", 600)),
+    "33": ("03", SimWindow("suburban", 500)),
+    "35": ("05", SimWindow("suburban", 1500)),
+    "37": ("07", SimWindow("urban", 800)),
+    "39": ("09", SimWindow("suburban", 800)),
 }

@@ -15,35 +15,39 @@ import numpy as np
 import optuna
 
 from gloam_jax.errors import InputError
-from gloam_jax.training.problem import Params, Problem, plot_histories, write_history
+from gloam_jax.learned import MLP, Learned
+from gloam_jax.training.problem import Problem, plot_histories, write_history
 
-_PARTS = ("conversion", "eigenvalue")
+
+def _mlps(params: Learned) -> dict[str, MLP]:
+    """The MLPs among the parameters (those the method uses), by part name."""
+    return {k: v for k, v in params._asdict().items() if isinstance(v, MLP)}
 
 
-def _names(problem: Problem) -> dict[str, tuple[int, str, int]]:
+def _names(problem: Problem) -> dict[str, tuple[str, str, int]]:
     """Search-space names -> (part, field, flat index), for the MLPs the method uses."""
     names = {}
-    for part, used, mlp in zip(_PARTS, problem.uses, problem.init_params, strict=True):
-        if not used:
-            continue
+    for part, mlp in _mlps(problem.init_params).items():
         for field, array in mlp._asdict().items():
             for i in range(np.size(array)):
-                names[f"{part}.{field}[{i}]"] = (_PARTS.index(part), field, i)
+                names[f"{part}.{field}[{i}]"] = (part, field, i)
     return names
 
 
-def params_from_values(problem: Problem, values: dict[str, float]) -> Params:
-    """Params with the searched weights set from ``values`` (others as in the start)."""
-    parts = [
-        {k: np.array(v, np.float32).ravel() for k, v in mlp._asdict().items()}
-        for mlp in problem.init_params
-    ]
+def params_from_values(problem: Problem, values: dict[str, float]) -> Learned:
+    """The start's parameters with the searched weights set from ``values``."""
+    start = _mlps(problem.init_params)
+    flat = {
+        part: {k: np.array(v, np.float32).ravel() for k, v in mlp._asdict().items()}
+        for part, mlp in start.items()
+    }
     for name, (part, field, i) in _names(problem).items():
-        parts[part][field][i] = values[name]
-    out = []
-    for mlp, flat in zip(problem.init_params, parts, strict=True):
-        out.append(type(mlp)(*(flat[k].reshape(np.shape(v)) for k, v in mlp._asdict().items())))
-    return Params(*out)
+        flat[part][field][i] = values[name]
+    mlps = {
+        part: type(mlp)(*(flat[part][k].reshape(np.shape(v)) for k, v in mlp._asdict().items()))
+        for part, mlp in start.items()
+    }
+    return problem.init_params._replace(**mlps)
 
 
 def _storage(problem: Problem) -> str:
@@ -81,7 +85,7 @@ def train_tpe(problem: Problem, progress: Callable[[int, int, float], None] | No
     if not names:
         raise InputError(None, f"method '{problem.config.method}' has no weights to train")
     init = {
-        name: float(np.ravel(getattr(problem.init_params[part], field))[i])
+        name: float(np.ravel(getattr(getattr(problem.init_params, part), field))[i])
         for name, (part, field, i) in names.items()
     }
     sampler = optuna.samplers.TPESampler(

@@ -1,0 +1,220 @@
+"""Registration on the host: prepared clouds, the outer rounds, and the three-line API.
+
+:func:`prepare` turns a raw cloud into a :class:`PreparedCloud` (voxel grid, k-d tree,
+covariances, association features); :func:`align_prepared` runs GICP's outer rounds: each
+queries the target's tree for the candidates of the moved source points and hands them to the
+jitted round (:func:`gloam_jax.gicp.solve_round`). :func:`align` does both, as small_gicp's
+``align(target, source)`` does, and returns its fields.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+
+from gloam_jax import covariance as cov
+from gloam_jax import geometry as geo
+from gloam_jax import pointcloud as pc
+from gloam_jax.errors import InputError
+from gloam_jax.gicp import Cloud, GICPConfig, retract_host, solve_round
+from gloam_jax.learned import Learned, cloud_attributes
+from gloam_jax.neighbors import KdTree
+
+
+@dataclass
+class PreparedCloud:
+    """A cloud ready for registration: downsampled points, k-d tree, regularised covariances."""
+
+    points: np.ndarray  # (N, 3)
+    covs: np.ndarray  # (N, 3, 3)
+    tree: KdTree
+    features: np.ndarray | None = None  # (N, F) for data association; None: none (F = 0)
+    num_dropped: int = 0  # NaN / inf points removed
+
+    @cached_property
+    def radius(self) -> float:
+        """Distance of the farthest point from the cloud's origin (m)."""
+        return float(np.sqrt(np.max(np.sum(self.points**2, axis=1))))
+
+    _padded: dict[tuple, Cloud] = field(default_factory=dict, repr=False)
+
+    def padded(self, size: int | None = None) -> Cloud:
+        """Device arrays padded to ``size`` rows (default: the bucket size), cached."""
+        size = pc.bucket_size(len(self.points)) if size is None else size
+        key = (size, geo.real_dtype())
+        if key in self._padded:
+            return self._padded[key]
+        points, mask = pc.pad(self.points, size)
+        covs, _ = pc.pad(self.covs, size)
+        covs[len(self.points) :] = np.eye(3)  # keeps padded rows finite
+        features = np.zeros((len(self.points), 0)) if self.features is None else self.features
+        real = geo.real_dtype()
+        cloud = Cloud(
+            jnp.asarray(points, real),
+            jnp.asarray(covs, real),
+            jnp.asarray(mask),
+            jnp.asarray(pc.pad(features, size)[0], real),
+        )
+        self._padded[key] = cloud
+        return cloud
+
+
+class RegistrationResult(NamedTuple):
+    """Outcome of :func:`align`; ``H``, ``b`` and ``error`` are the Gauss-Newton system over
+    the increment of :func:`gloam_jax.gicp.retract` and the sum of squared whitened
+    residuals at the final estimate."""
+
+    T_target_source: np.ndarray
+    converged: bool
+    iterations: int
+    num_inliers: int
+    H: np.ndarray
+    b: np.ndarray
+    error: float
+
+
+def prepare(
+    points: np.ndarray,
+    *,
+    downsampling_resolution: float = 0.25,
+    num_neighbors: int = 20,
+    regularizer: str = "plane",
+    name: str | None = None,
+) -> PreparedCloud:
+    """Drop invalid points, voxel-downsample, build the tree and the covariances: (N, 3+).
+    ``name``: the cloud's name (a file) in error messages."""
+    points, dropped = pc.drop_invalid(np.asarray(points), name)
+    points = pc.voxel_downsample(points[:, :3].astype(np.float64), downsampling_resolution)
+    cloud = build_cloud(points, num_neighbors, regularizer, name)
+    cloud.num_dropped = dropped
+    return cloud
+
+
+def build_cloud(
+    points: np.ndarray,
+    num_neighbors: int,
+    regularizer: str = "plane",
+    source: str | None = None,
+    size: int | None = None,
+    pca_features: np.ndarray | None = None,
+    learned: Learned | None = None,
+) -> PreparedCloud:
+    """Tree, covariances and association features of clean, downsampled points (N, 3)
+    float64; ``pca_features`` (N, 6) feed the ``learned`` parts (see cloud_attributes).
+    ``size``: rows the jitted covariance code sees (default: the bucket size)."""
+    learned = Learned() if learned is None else learned
+    tree = KdTree(points, source)
+    neighbours, _ = tree.query(points, num_neighbors)
+    if pca_features is None:
+        if learned.eigenvalue is not None or learned.conversion is not None:
+            raise InputError(source, "learned covariances or association need point features")
+        pca_features = np.zeros((len(points), 0))
+    # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
+    size = pc.bucket_size(len(points)) if size is None else size
+    covs, features = cloud_attributes(
+        jnp.asarray(pc.pad(points, size)[0]),
+        jnp.asarray(pc.pad(neighbours, size)[0]),
+        jnp.asarray(pc.pad(np.asarray(pca_features), size)[0]),
+        learned,
+        regularizer,
+    )
+    covs = np.asarray(covs, dtype=np.float64)[: len(points)]
+    features = None if learned.conversion is None else np.asarray(features)[: len(points)]
+    return PreparedCloud(points, covs, tree, features)
+
+
+def align_prepared(
+    target: PreparedCloud,
+    source: PreparedCloud,
+    init_T_target_source: np.ndarray | None = None,
+    config: GICPConfig = GICPConfig(),
+    sizes: tuple[int, int] | None = None,
+) -> RegistrationResult:
+    """Register prepared clouds; see :func:`align`. ``sizes``: the rows (source, target) the
+    solver sees (default: their bucket sizes); the odometry holds them fixed across frames,
+    so the solver compiles once."""
+    T = np.eye(4) if init_T_target_source is None else np.asarray(init_T_target_source, float)
+    if sizes is None:
+        src, tgt = source.padded(), target.padded()
+    else:
+        src, tgt = source.padded(sizes[0]), target.padded(sizes[1])
+    size = src.points.shape[0]
+    max_d2 = jnp.asarray(config.max_correspondence_distance**2, dtype=geo.real_dtype())
+    converged, iterations = False, 0
+    for iterations in range(1, config.max_iterations + 1):  # noqa: B007
+        moved = source.points @ T[:3, :3].T + T[:3, 3]
+        cand, valid = target.tree.query(
+            moved, config.num_candidates, config.max_correspondence_distance
+        )
+        cand, valid = pc.pad(cand, size)[0], pc.pad(valid, size)[0]
+        _, xi, system = solve_round(
+            jnp.asarray(T, dtype=geo.real_dtype()),
+            src,
+            tgt,
+            jnp.asarray(cand),
+            jnp.asarray(valid),
+            max_d2,
+            config.inner_steps,
+            config.adjoint,
+        )
+        # Compose in float64 on the host so that many rounds do not accumulate float32 error.
+        T_round, T = T, retract_host(np.asarray(xi, np.float64), T)
+        H, b, error, inliers = (np.asarray(x, np.float64) for x in system)
+        # Converged when the next Gauss-Newton step would be below the thresholds (small_gicp's
+        # criterion), provided the candidates are still fresh: no point moved farther than a
+        # tenth of the correspondence distance since they were found.
+        step = _gauss_newton_step(H, b)
+        fresh = _largest_shift(T_round, T, source.radius) < 0.1 * config.max_correspondence_distance
+        small = np.linalg.norm(step[3:]) < config.rotation_eps
+        if inliers > 0 and fresh and small and np.linalg.norm(step[:3]) < config.translation_eps:
+            converged = True
+            break
+    return RegistrationResult(T, converged, iterations, int(inliers), H, b, float(error))
+
+
+def _largest_shift(T_from: np.ndarray, T_to: np.ndarray, radius: float) -> float:
+    """Upper bound on how far any source point within ``radius`` of the source origin moves
+    from ``T_from a`` to ``T_to a`` (m): the origin's shift plus the rotation's sweep."""
+    D = T_to @ np.linalg.inv(T_from)
+    angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
+    return float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3]) + angle * radius)
+
+
+def _gauss_newton_step(H: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``-H^-1 b`` (6,), zero along directions H does not constrain."""
+    return -np.linalg.lstsq(H, b, rcond=1e-12)[0]
+
+
+def align(
+    target: np.ndarray,
+    source: np.ndarray,
+    init_T_target_source: np.ndarray | None = None,
+    *,
+    downsampling_resolution: float = 0.25,
+    num_neighbors: int = 20,
+    regularizer: str = "plane",
+    config: GICPConfig = GICPConfig(),
+) -> RegistrationResult:
+    """Estimate ``T_target_source`` mapping ``source`` (N, 3+) points onto ``target`` (M, 3+).
+
+    Both clouds are voxel-downsampled (``downsampling_resolution`` m), get k-NN covariances
+    (``num_neighbors``) regularised by ``regularizer`` ("plane" or "raw_eps") and are
+    registered by GICP from ``init_T_target_source`` (identity by default).
+    """
+    if regularizer not in cov.REGULARIZERS:
+        raise InputError(
+            None,
+            f"unknown regularizer {regularizer!r}; choose one of {', '.join(cov.REGULARIZERS)}",
+        )
+    kw = dict(
+        downsampling_resolution=downsampling_resolution,
+        num_neighbors=num_neighbors,
+        regularizer=regularizer,
+    )
+    tgt = prepare(target, name="target", **kw)
+    src = prepare(source, name="source", **kw)
+    return align_prepared(tgt, src, init_T_target_source, config)

@@ -1,0 +1,249 @@
+"""Many registrations at once: ``jit`` + ``vmap`` over padded scan pairs.
+
+Training and batch evaluation register every scan of a window to its predecessor (or to a
+local map of earlier scans), as the paper trains. :mod:`gloam_jax.training.data` prepares the
+scans and each pair's fixed candidate sets on the host; all that follows here is one traced
+function of the learned parts: covariances (the regulariser or Algorithm 1), association
+features, a fixed number of GICP rounds (:func:`gloam_jax.gicp.gicp_round`, the partners
+re-chosen among the candidates in JAX each round), the chained trajectory and its relative
+error. It differentiates through the LM solves with either optimistix adjoint.
+
+Pair ``b`` registers source scan ``i + 1`` to target scan ``i``: its estimate is
+``T_prev_curr`` in the LiDAR frame, and :func:`trajectories` chains them per window.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar, Literal, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from gloam_jax import geometry as geo
+from gloam_jax.errors import InputError
+from gloam_jax.gicp import Cloud, GICPConfig, gicp_round
+from gloam_jax.learned import Learned, attributes
+from gloam_jax.training.losses import TRAINING_FRACTIONS, SegmentPlan, chain, segment_errors
+
+
+def _batch_gicp() -> GICPConfig:
+    return GICPConfig(num_candidates=5)
+
+
+@dataclass(frozen=True)
+class BatchConfig:
+    """Batch registration settings: fixed candidate sets, a fixed number of rounds.
+
+    ``gicp`` holds each round's settings (``num_candidates``: K found once per pair within
+    ``candidate_radius``; ``max_iterations`` and the convergence thresholds are the
+    odometry's, since the batch runs ``rounds`` rounds)."""
+
+    rounds: int = 4  # GICP rounds, partners re-chosen among the candidates each round
+    candidate_radius: float = 2.0  # m around the initial guess
+    max_source_points: int = 2048  # source points per pair (a fixed random subset)
+    association: Literal["hard", "soft"] = "hard"  # soft: softmax weights (training DA)
+    temperature: float = 0.05  # soft association's, in the cost's units (m^2)
+    segment_fractions: tuple[float, ...] = TRAINING_FRACTIONS  # of each window's path
+    segment_step: int = 10  # frames between segment starts (the devkit's)
+    seed: int = 0  # source subsets
+    # The target of pair k: scan k alone (map_scans 1, frame-to-frame, as the paper trains),
+    # or a local map of scans k, k - map_stride, ... (map_scans of them) merged with the
+    # ground-truth poses, as the odometry registers to its last keyframes.
+    map_scans: int = 1
+    map_stride: int = 2
+    gicp: GICPConfig = field(default_factory=_batch_gicp)
+
+    MOVED: ClassVar[dict[str, str]] = {
+        k: f"gicp.{k}"
+        for k in ("inner_steps", "num_candidates", "max_correspondence_distance", "adjoint")
+    }
+
+    def __post_init__(self) -> None:
+        if min(self.rounds, self.gicp.num_candidates, self.max_source_points, self.map_scans,
+               self.map_stride) < 1:  # fmt: skip
+            raise InputError(
+                None,
+                "rounds, gicp.num_candidates, max_source_points, map_scans and map_stride "
+                "must be >= 1",
+            )
+        object.__setattr__(self, "segment_fractions", tuple(self.segment_fractions))
+
+
+class ScanSet(NamedTuple):
+    """Prepared scans padded to Q rows: points (S, Q, 3), ascending eigenvalues (S, Q, 3)
+    and eigenvectors (S, Q, 3, 3) of the k-NN covariances, PCA features (S, Q, 6) (width 0
+    without a model), mask (S, Q)."""
+
+    points: Array
+    values: Array
+    vectors: Array
+    pca: Array
+    mask: Array
+
+
+class PairBatch(NamedTuple):
+    """B registrations: scan indices ``target``, ``source`` (B,); source rows (B, P) with
+    ``row_mask``; candidates (B, P, K) with ``valid``, as rows of the flattened scans (S * Q)
+    and the slot of the local map each comes from; the map's poses in the target's frame
+    ``T_target_map`` (B, M, 4, 4) (M = 1, the identity, frame-to-frame); ``T_init`` (B, 4, 4)."""
+
+    target: Array
+    source: Array
+    rows: Array
+    row_mask: Array
+    candidates: Array
+    slots: Array
+    valid: Array
+    T_target_map: Array
+    T_init: Array
+
+
+def select_rows(pairs: PairBatch, index: Array) -> PairBatch:
+    """The same source-row slots (R,) of every pair: a PairBatch with P = R."""
+    fields = ("rows", "row_mask", "candidates", "slots", "valid")  # those with a row axis
+    return pairs._replace(**{k: getattr(pairs, k)[:, index] for k in fields})
+
+
+@dataclass(frozen=True)
+class Window:
+    """One window's bookkeeping: its pairs are ``pairs[start:stop]``; ground truth in the
+    camera-0 convention (n, 4, 4) with ``Tr_cam_velo`` (4, 4); the segment plan of its loss."""
+
+    name: str
+    start: int
+    stop: int
+    gt_cam: np.ndarray
+    Tr_cam_velo: np.ndarray
+    plan: SegmentPlan
+
+
+@dataclass
+class BatchData:
+    """Scans, pairs and windows, ready for :func:`register_pairs` and :func:`window_errors`."""
+
+    scans: ScanSet
+    pairs: PairBatch
+    windows: list[Window]
+    regularizer: str = "plane"  # plain GICP's covariances (the preprocessing's)
+
+    @property
+    def num_pairs(self) -> int:
+        return int(self.pairs.target.shape[0])
+
+
+# --------------------------------------------------------------------------------------------
+# Device side: registrations, trajectories, errors
+
+
+def register_pair(
+    learned: Learned, scans: ScanSet, pair: PairBatch, config: BatchConfig, regularizer: str
+) -> Array:
+    """One registration (``pair`` holds one row of each PairBatch field): ``T_target_source``
+    (4, 4) after ``config.rounds`` GICP rounds from ``pair.T_init``; covariances without a
+    learned eigenvalue MLP by ``regularizer``."""
+    # The target as just the candidate rows, so nothing of size Q is gathered per pair; each
+    # placed in the target's frame by its map slot's pose (k-NN eigenvectors rotate too), the
+    # slot's pose selected elementwise (M is small) rather than gathered per row.
+    T_map = sum(
+        jnp.where((pair.slots == m)[..., None, None], T_m, 0.0)
+        for m, T_m in enumerate(pair.T_target_map)
+    )
+    R, t = T_map[..., :3, :3], T_map[..., :3, 3]
+    S, Q = scans.mask.shape
+
+    def gather(a: Array) -> Array:  # (S, Q, ...) -> (P, K, ...)
+        return a.reshape(S * Q, *a.shape[2:])[pair.candidates]
+
+    t_covs, t_feats = attributes(
+        gather(scans.values), geo.matmul(R, gather(scans.vectors)), gather(scans.pca), learned,
+        regularizer,
+    )  # fmt: skip
+    candidates = Cloud(geo.rotate(R, gather(scans.points)) + t, t_covs, pair.valid, t_feats)
+    s, rows = pair.source, pair.rows
+    s_covs, s_feats = attributes(
+        scans.values[s, rows], scans.vectors[s, rows], scans.pca[s, rows], learned, regularizer
+    )
+    source = Cloud(scans.points[s, rows], s_covs, pair.row_mask & scans.mask[s, rows], s_feats)
+    max_d2 = jnp.asarray(config.gicp.max_correspondence_distance**2, scans.points.dtype)
+    temperature = (
+        jnp.asarray(config.temperature, scans.points.dtype)
+        if config.association == "soft"
+        else None
+    )
+
+    def round_(T: Array, _) -> tuple[Array, None]:
+        T, _, _ = gicp_round(
+            T, source, candidates, max_d2, config.gicp.inner_steps, config.gicp.adjoint, temperature
+        )
+        return T, None
+
+    # A scan, so that XLA compiles one round, not config.rounds copies of it; each round
+    # rematerialised in the backward pass, so that the gradient keeps only the rounds' poses,
+    # not every round's per-candidate intermediates (half the memory, a quicker first step).
+    return jax.lax.scan(jax.checkpoint(round_), pair.T_init, length=config.rounds)[0]
+
+
+def register_pairs(
+    learned: Learned, scans: ScanSet, pairs: PairBatch, config: BatchConfig, regularizer: str
+) -> Array:
+    """All registrations at once (vmap): ``T_prev_curr`` (B, 4, 4). Traceable; see
+    :class:`Evaluator` for the jitted whole."""
+    return jax.vmap(lambda p: register_pair(learned, scans, p, config, regularizer))(pairs)
+
+
+def trajectories(T_rel: Array, windows: list[Window]) -> list[Array]:
+    """Each window's estimated camera-0 trajectory (n, 4, 4), first pose identity, from the
+    pairs' LiDAR-frame estimates (B, 4, 4): ``Tr @ T_world_lidar @ inv(Tr)``."""
+    out = []
+    for w in windows:
+        T_lidar = chain(T_rel[w.start : w.stop])
+        Tr = jnp.asarray(w.Tr_cam_velo, T_rel.dtype)
+        out.append(Tr @ T_lidar @ jnp.asarray(np.linalg.inv(w.Tr_cam_velo), T_rel.dtype))
+    return out
+
+
+def window_errors(T_rel: Array, windows: list[Window]) -> tuple[Array, Array]:
+    """Per-window relative errors (W,) each: translation (fraction) and rotation (rad/m),
+    the devkit's rule over each window's scaled segments (the training loss's terms)."""
+    t_err, r_err = [], []
+    for w, T_est in zip(windows, trajectories(T_rel, windows), strict=True):
+        t, r = segment_errors(T_est, jnp.asarray(w.gt_cam, T_est.dtype), w.plan)
+        t_err.append(jnp.mean(t)), r_err.append(jnp.mean(r))
+    return jnp.stack(t_err), jnp.stack(r_err)
+
+
+def loss(learned: Learned, data: BatchData, config: BatchConfig) -> Array:
+    """Mean translational relative error over the windows (a fraction): Eq. (8)'s loss."""
+    T_rel = register_pairs(learned, data.scans, data.pairs, config, data.regularizer)
+    return jnp.mean(window_errors(T_rel, data.windows)[0])
+
+
+class Evaluation(NamedTuple):
+    """Batch evaluation: per-window ``t_err`` (fraction) and ``r_err`` (rad/m), (W,), and the
+    registrations ``T_rel`` (B, 4, 4)."""
+
+    t_err: np.ndarray
+    r_err: np.ndarray
+    T_rel: np.ndarray
+
+
+class Evaluator:
+    """Jitted batch evaluation of learned parts on fixed data: ``Evaluator(data, cfg)(learned)``.
+    Compiles once per structure of ``learned`` (which parts are present)."""
+
+    def __init__(self, data: BatchData, config: BatchConfig) -> None:
+        self.data, self.config = data, config
+        windows, regularizer = data.windows, data.regularizer
+
+        def run(learned, scans, pairs):
+            T_rel = register_pairs(learned, scans, pairs, config, regularizer)
+            return (*window_errors(T_rel, windows), T_rel)
+
+        self._run = jax.jit(run)
+
+    def __call__(self, learned: Learned) -> Evaluation:
+        t, r, T = self._run(learned, self.data.scans, self.data.pairs)
+        return Evaluation(np.asarray(t), np.asarray(r), np.asarray(T))
