@@ -16,15 +16,8 @@ from gloam_jax.simulate import (
     simulate,
 )
 from gloam_jax.simulate.preview import deskewed_points
-from gloam_jax.simulate.scene import (
-    BUILDING,
-    ROAD,
-    TERRAIN,
-    Ground,
-    Scene,
-    _PrimitiveList,
-)
 from gloam_jax.simulate.trajectory import default_Tr_cam_velo
+from gloam_jax.simulate.world import BUILDING, ROAD, TERRAIN, Ground, PrimitiveList, Scene
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 KITTI_00 = SHARED / "kitti_gt_poses" / "00.txt"
@@ -51,10 +44,10 @@ def flat_scene(boxes=()) -> Scene:
         sidewalk_width=0.0,
         curb_height=0.0,
     )
-    prims = _PrimitiveList()
+    prims = PrimitiveList()
     for centre, half in boxes:
         prims.add(centre, half, 0.0, BUILDING)
-    empty = _PrimitiveList()
+    empty = PrimitiveList()
     return Scene("test", ground, prims.build(0), empty.build(len(boxes)), empty.build(len(boxes)))
 
 

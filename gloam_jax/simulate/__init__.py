@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from gloam_jax.simulate.scene import CLASS_NAMES, STYLES, Scene, build_scene
+from gloam_jax.simulate.scene import STYLES, build_scene
 from gloam_jax.simulate.sensors import SENSORS, SensorModel, get_sensor
 from gloam_jax.simulate.sequence import (
     ErrorSwitches,
@@ -19,6 +19,7 @@ from gloam_jax.simulate.trajectory import (
     load_kitti_trajectory,
     procedural_trajectory,
 )
+from gloam_jax.simulate.world import CLASS_NAMES, Scene
 
 
 def simulate(

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 from gloam_jax.io import KittiSequence, write_figure
-from gloam_jax.simulate.scene import CLASS_NAMES, ROAD, SIDEWALK, TERRAIN
 from gloam_jax.simulate.trajectory import interpolate_poses
+from gloam_jax.simulate.world import CLASS_NAMES, ROAD, SIDEWALK, TERRAIN
 
 # SemanticKITTI ground classes (road, parking, sidewalk, other-ground, terrain).
 GROUND_CLASSES = (ROAD, 44, SIDEWALK, 49, TERRAIN)

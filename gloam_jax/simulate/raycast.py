@@ -1,4 +1,4 @@
-"""Jitted ray casting of one LiDAR sweep against a :class:`~gloam_jax.simulate.scene.Scene`.
+"""Jitted ray casting of one LiDAR sweep against a :class:`~gloam_jax.simulate.world.Scene`.
 
 Rays are grouped in azimuth sectors; each sector is tested only against the primitives that
 can lie in it (chosen on the host, padded to a power-of-two count so shapes, and compiled
@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from gloam_jax.simulate.scene import (
+from gloam_jax.simulate.world import (
     GRID_RES,
     PATTERN_SLATS,
     PATTERN_WINDOWS,

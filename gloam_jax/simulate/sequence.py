@@ -31,9 +31,10 @@ import numpy as np
 from gloam_jax import io
 from gloam_jax.errors import InputError
 from gloam_jax.simulate import raycast
-from gloam_jax.simulate.scene import REFLECTIVITY, Scene, build_scene
+from gloam_jax.simulate.scene import build_scene
 from gloam_jax.simulate.sensors import SensorModel
 from gloam_jax.simulate.trajectory import Trajectory
+from gloam_jax.simulate.world import REFLECTIVITY, Scene
 
 FORMAT_VERSION = 1
 
