@@ -153,8 +153,12 @@ def cam_to_lidar_poses(P_cam: np.ndarray, Tr_cam_velo: np.ndarray) -> np.ndarray
     return np.linalg.inv(Tr) @ P @ Tr
 
 
-def lidar_to_cam_poses(T_lidar: np.ndarray, Tr_cam_velo: np.ndarray) -> np.ndarray:
-    """LiDAR poses ``(..., 4, 4)`` -> camera-0 poses ``Tr @ T @ inv(Tr)`` (float64)."""
-    T = np.asarray(T_lidar, dtype=np.float64)
+def lidar_to_cam_poses(T_lidar, Tr_cam_velo: np.ndarray):
+    """LiDAR poses ``(..., 4, 4)`` -> camera-0 poses ``Tr @ T @ inv(Tr)``: float64 NumPy, or,
+    for a JAX array (traced too), a JAX array in its dtype, through its own array namespace."""
     Tr = np.asarray(Tr_cam_velo, dtype=np.float64)
-    return Tr @ T @ np.linalg.inv(Tr)
+    if isinstance(T_lidar, np.ndarray) or not hasattr(T_lidar, "__array_namespace__"):
+        return Tr @ np.asarray(T_lidar, dtype=np.float64) @ np.linalg.inv(Tr)
+    xp = T_lidar.__array_namespace__()
+    Tr, Tr_inv = (xp.asarray(A, dtype=T_lidar.dtype) for A in (Tr, np.linalg.inv(Tr)))
+    return Tr @ T_lidar @ Tr_inv

@@ -25,6 +25,7 @@ from jax import Array
 from gloam_jax import geometry as geo
 from gloam_jax.errors import InputError
 from gloam_jax.gicp import Cloud, GICPConfig, gicp_round
+from gloam_jax.io import lidar_to_cam_poses
 from gloam_jax.learned import Learned, attributes
 from gloam_jax.training.losses import TRAINING_FRACTIONS, SegmentPlan, chain, segment_errors
 
@@ -197,12 +198,7 @@ def register_pairs(
 def trajectories(T_rel: Array, windows: list[Window]) -> list[Array]:
     """Each window's estimated camera-0 trajectory (n, 4, 4), first pose identity, from the
     pairs' LiDAR-frame estimates (B, 4, 4): ``Tr @ T_world_lidar @ inv(Tr)``."""
-    out = []
-    for w in windows:
-        T_lidar = chain(T_rel[w.start : w.stop])
-        Tr = jnp.asarray(w.Tr_cam_velo, T_rel.dtype)
-        out.append(Tr @ T_lidar @ jnp.asarray(np.linalg.inv(w.Tr_cam_velo), T_rel.dtype))
-    return out
+    return [lidar_to_cam_poses(chain(T_rel[w.start : w.stop]), w.Tr_cam_velo) for w in windows]
 
 
 def window_errors(T_rel: Array, windows: list[Window]) -> tuple[Array, Array]:
