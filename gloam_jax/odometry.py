@@ -215,8 +215,7 @@ class Odometry:
         ``features`` (N, D): the backbone's, for the learned methods.
         Returns ``T_world_lidar`` (4, 4). Bad scans fall back on the motion prior."""
         # A frame's NumPy products are thin ((N, 3) @ (3, 3), (N, D) @ (D, 6)): threaded BLAS
-        # only fights XLA's and the k-d tree's threads for the cores (the PCA product took
-        # 20 ms instead of 4 on 2 cores).
+        # only fights XLA's and the k-d tree's threads for the cores.
         with self._threads.limit(limits=1, user_api="blas"):
             return self._register(scan, times, frame_dt, source, features)
 

@@ -64,7 +64,7 @@ def _voxelize(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.
 
 def _eigenvalues(c: np.ndarray) -> np.ndarray:
     """Closed-form eigenvalues of symmetric 3x3 matrices given as (M, 6) ``xx yy zz xy xz yz``:
-    (M, 3) descending (Smith, 1961). Vectorised; numpy's batched eigh is ~20x slower here."""
+    (M, 3) descending (Smith, 1961). Vectorised, where numpy's batched eigh loops per matrix."""
     xx, yy, zz, xy, xz, yz = c.T
     q = (xx + yy + zz) / 3
     p = np.sqrt(((xx - q) ** 2 + (yy - q) ** 2 + (zz - q) ** 2 + 2 * (xy**2 + xz**2 + yz**2)) / 6)
