@@ -1,0 +1,134 @@
+"""What the ``gloam`` commands share: the app, consoles, one-line errors, progress, run folders.
+
+Heavy modules (JAX, the pipeline, training) are imported inside the commands, so that
+``gloam --version`` and ``--help`` start at once.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+from collections.abc import Callable
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated, TypeVar
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.table import Table
+
+from gloam_jax import __version__
+from gloam_jax.errors import InputError
+
+app = typer.Typer(
+    help="gloam-jax: learned GICP LiDAR odometry in JAX, with a LiDAR simulator and KITTI tools.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode="rich",
+)
+console = Console()
+err_console = Console(stderr=True, soft_wrap=True)
+F = TypeVar("F", bound=Callable)
+
+
+def user_errors(fn: F) -> F:
+    """Report bad input as one line and exit with status 2, instead of a traceback."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except InputError as err:
+            err_console.print(f"[red]error:[/red] {err}", highlight=False)
+            raise typer.Exit(2) from None
+
+    return wrapper  # type: ignore[return-value]
+
+
+def _version(value: bool) -> None:
+    if value:
+        console.print(f"gloam-jax {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version.")
+    ] = False,
+) -> None:
+    """gloam-jax command line."""
+
+
+def progress_bar() -> Progress:
+    return Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.fields[rate]}"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+    )
+
+
+class Tasks:
+    """A progress callback ``(what, done, total)`` that gives each ``what`` its own bar."""
+
+    def __init__(self, bar: Progress) -> None:
+        self.bar, self.ids = bar, {}
+
+    def __call__(self, what: str, done: int, total: int, rate: str = "") -> None:
+        if what not in self.ids:
+            self.ids[what] = self.bar.add_task(what, total=total, rate="")
+        self.bar.update(self.ids[what], completed=done, rate=rate)
+
+
+def metrics_table(result: dict, title: str) -> Table:
+    table = Table(title=title)
+    table.add_column("segment (m)", justify="right")
+    table.add_column("t_err (%)", justify="right")
+    table.add_column("r_err (deg/100 m)", justify="right")
+    table.add_column("segments", justify="right")
+    for length, row in result["per_length"].items():
+        table.add_row(
+            length,
+            f"{row['t_err_percent']:.3f}",
+            f"{row['r_err_deg_per_100m']:.3f}",
+            str(row["num_segments"]),
+        )
+    table.add_row(
+        "[bold]all",
+        f"[bold]{result['t_err_percent']:.3f}",
+        f"[bold]{result['r_err_deg_per_100m']:.3f}",
+        f"[bold]{result['num_segments']}",
+    )
+    return table
+
+
+def write_json(path: Path, data: dict) -> None:
+    from gloam_jax.io import write_atomic
+
+    write_atomic(path, json.dumps(data, indent=2))
+
+
+def cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "gloam-jax"
+
+
+def new_run_dir(out: Path) -> Path:
+    """A new timestamped folder's path under ``out``; the run creates it as it writes, so
+    one that fails on bad input leaves nothing behind."""
+    return out / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+
+
+def mark_latest(run_dir: Path) -> None:
+    """Point ``out/latest`` at a finished run."""
+    latest = run_dir.parent / "latest"
+    if latest.is_symlink() or latest.exists():
+        latest.unlink()
+    latest.symlink_to(run_dir.name)

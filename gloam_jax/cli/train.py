@@ -1,0 +1,142 @@
+"""``gloam init-model`` and ``gloam train``: the model file, trained by TPE or gradients."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from gloam_jax.cli.common import Tasks, app, console, progress_bar, user_errors
+from gloam_jax.errors import InputError
+
+
+@app.command(
+    name="init-model",
+    epilog="Example:\n\n  gloam init-model data/sim 05 07 --out model.npz",
+)
+@user_errors
+def init_model(
+    data: Annotated[Path, typer.Argument(help="KITTI-layout root with training sequences.")],
+    sequences: Annotated[list[str], typer.Argument(help="Training sequence ids.")],
+    out: Annotated[Path, typer.Option(help="Model file to write (.npz).")] = Path("model.npz"),
+    every: Annotated[int, typer.Option(min=1, help="Use every N-th scan for the PCA.")] = 25,
+    backbone: Annotated[str, typer.Option(help="Feature backbone: geometric.")] = "geometric",
+    features: Annotated[
+        Path | None, typer.Option(help="Fit on per-scan feature files here instead.")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="MLP initialisation seed.")] = 0,
+    init: Annotated[
+        str, typer.Option(help="random, or gicp (start near plain GICP, for training).")
+    ] = "random",
+) -> None:
+    """Fit the frozen PCA on training scans and write a model file with untrained MLPs."""
+    from gloam_jax.features import get_backbone
+    from gloam_jax.models import save_model
+    from gloam_jax.training.problem import fit_initial_model
+
+    extractor = (
+        get_backbone("precomputed", folder=features)
+        if features is not None
+        else get_backbone(backbone)
+    )
+    with progress_bar() as bar:
+        step = Tasks(bar)
+
+        model = fit_initial_model(
+            data,
+            sequences,
+            extractor,
+            every=every,
+            seed=seed,
+            init=init,
+            # A folder of files is the user's, not the model's: runs name theirs with --features.
+            keep_backbone_options=features is None,
+            progress=step,
+        )
+    save_model(out, model)
+    console.print(
+        f"PCA keeps {100 * float(sum(model.pca.explained_variance_ratio)):.1f} % of the "
+        f"variance; model (untrained MLPs, {init} init, seed {seed}): {out}"
+    )
+
+
+@app.command(
+    epilog=(
+        "Examples:\n\n"
+        "  gloam train --config configs/train_grad.yaml --out runs/grad\n\n"
+        "  gloam train --mode tpe --config configs/train_tpe.yaml --out runs/tpe --trials 300\n\n"
+        "Rerunning a command with the same --out resumes it."
+    )
+)
+@user_errors
+def train(
+    config: Annotated[
+        Path | None, typer.Option(help="YAML training settings (configs/train_*.yaml).")
+    ] = None,
+    mode: Annotated[str | None, typer.Option(help="tpe or grad (overrides the config).")] = None,
+    data: Annotated[
+        Path | None, typer.Option(help="KITTI-layout root of the training sequences.")
+    ] = None,
+    out: Annotated[Path, typer.Option(help="Run folder (resumed when it exists).")] = Path(
+        "runs/train"
+    ),
+    trials: Annotated[
+        int | None, typer.Option("--trials", "--n-trials", min=1, help="TPE trials (overrides).")
+    ] = None,
+    seed: Annotated[
+        int | None,
+        typer.Option(help="Seed of the start model, TPE's sampler and point subsets (overrides)."),
+    ] = None,
+    steps: Annotated[int | None, typer.Option(min=1, help="Gradient steps (overrides).")] = None,
+    learning_rate: Annotated[
+        float | None, typer.Option(min=0.0, help="Adam's learning rate (overrides).")
+    ] = None,
+    cache: Annotated[
+        Path | None, typer.Option(help="Folder for prepared training windows (shared by runs).")
+    ] = None,
+) -> None:
+    """Train the MLPs by TPE (the paper's black-box search) or by gradients through GICP."""
+    import dataclasses
+
+    from gloam_jax.config import load_config
+    from gloam_jax.training.config import TrainConfig
+    from gloam_jax.training.problem import setup
+
+    cfg = load_config(config, TrainConfig)
+    if mode is not None:
+        if mode not in ("tpe", "grad"):
+            raise InputError(None, f"--mode must be tpe or grad, not {mode!r}")
+        cfg = dataclasses.replace(cfg, mode=mode)
+    if data is not None:
+        cfg = dataclasses.replace(cfg, data=str(data))
+    if trials is not None:
+        cfg = dataclasses.replace(cfg, tpe=dataclasses.replace(cfg.tpe, n_trials=trials))
+    if seed is not None:
+        cfg = dataclasses.replace(cfg, seed=seed)
+    grad = {"steps": steps, "learning_rate": learning_rate}
+    grad = {k: v for k, v in grad.items() if v is not None}
+    cfg = dataclasses.replace(cfg, grad=dataclasses.replace(cfg.grad, **grad))
+    with progress_bar() as bar:
+        step = Tasks(bar)
+
+        problem = setup(cfg, out, cache_dir=cache, progress=step)
+        label = "TPE trials" if cfg.mode == "tpe" else "gradient steps"
+
+        def tick(done: int, total: int, best: float) -> None:
+            step(label, done, total, rate=f"best t_err {100 * best:.3f} %")
+
+        if cfg.mode == "tpe":
+            from gloam_jax.training.tpe import train_tpe
+
+            model = train_tpe(problem, tick)
+        else:
+            from gloam_jax.training.grad import train_grad
+
+            model = train_grad(problem, tick)
+    info = model.provenance
+    console.print(
+        f"{cfg.mode}: best training t_err {100 * info['train_t_err']:.3f} % "
+        f"({info['wall_s']:.0f} s of training); model: {out / 'model.npz'}, "
+        f"curve: {out / 'loss_curve.png'}"
+    )
