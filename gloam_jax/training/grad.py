@@ -160,7 +160,7 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
         {"training t_err (hard association)": (
             [h["wall_s"] for h in history], [100 * h["t_err"] for h in history])},
         run_dir / "loss_curve.png",
-        f"gradient ({config.adjoint} adjoint, {config.association} association), "
+        f"gradient ({config.gicp.adjoint} adjoint, {config.association} association), "
         f"{problem.config.method}",
     )  # fmt: skip
     if not np.isfinite(best):
