@@ -9,11 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from shared_data import shared_path
 
 from gloam_jax import io as gio
 from gloam_jax.errors import InputError
-
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def random_poses(n: int, seed: int = 0) -> np.ndarray:
@@ -28,13 +27,6 @@ def random_poses(n: int, seed: int = 0) -> np.ndarray:
 def random_points(n: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
     return rng.normal(scale=20.0, size=(n, 4)).astype(np.float32)
-
-
-def shared(relative: str) -> Path:
-    path = DATA / relative
-    if not path.exists():
-        pytest.skip(f"shared data {path} not present")
-    return path
 
 
 # --------------------------------------------------------------------------------------------
@@ -93,7 +85,6 @@ def test_writer_is_atomic(tmp_path, monkeypatch):
 
 
 def test_evo_reads_our_files(tmp_path):
-    pytest.importorskip("evo")
     from evo.tools import file_interface
 
     poses = random_poses(20, seed=2)
@@ -108,10 +99,10 @@ def test_evo_reads_our_files(tmp_path):
 
 
 def test_shared_kitti_gt_poses():
-    poses = gio.read_kitti_poses(shared("kitti_gt_poses/00.txt"))
+    poses = gio.read_kitti_poses(shared_path("kitti_gt_poses/00.txt"))
     assert poses.shape == (4541, 4, 4)
     np.testing.assert_allclose(poses[0], np.eye(4), atol=1e-6)
-    times = gio.read_times(shared("kitti_gt_poses/00_times.txt"))
+    times = gio.read_times(shared_path("kitti_gt_poses/00_times.txt"))
     assert times.shape == (4541,) and times[0] == 0.0
 
 
@@ -140,7 +131,7 @@ def test_calib_round_trip(tmp_path):
 
 
 def test_shared_calib_file():
-    calib = gio.read_calib(shared("kitti_gt_poses/calib_Tr_velo_to_cam0.txt"))
+    calib = gio.read_calib(shared_path("kitti_gt_poses/calib_Tr_velo_to_cam0.txt"))
     Tr = calib["Tr_00_02"]
     assert Tr.shape == (4, 4)
     np.testing.assert_array_equal(Tr[3], [0, 0, 0, 1])
@@ -169,7 +160,7 @@ def test_bin_round_trip_keeps_nan_points(tmp_path):
 
 
 def test_shared_pcd():
-    points = gio.read_scan(shared("real_pair/251370668.pcd"))
+    points = gio.read_scan(shared_path("real_pair/251370668.pcd"))
     assert points.shape == (69088, 4) and points.dtype == np.float32
     assert np.all(np.isfinite(points))
 

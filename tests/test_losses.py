@@ -4,13 +4,13 @@ against metrics.kitti_rte, in float64 (float32 where the fast path is checked)."
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from shared_data import shared_path
 
 from gloam_jax.errors import InputError
 from gloam_jax.io import read_kitti_poses
@@ -26,7 +26,6 @@ from gloam_jax.training import (
     segment_plan,
 )
 
-KITTI_GT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_gt_poses"
 DEG_PER_100M = 180.0 / math.pi * 100.0
 
 
@@ -92,10 +91,7 @@ def devkit_twin(est: jax.Array, gt: np.ndarray, plan: SegmentPlan) -> tuple[jax.
 
 
 def kitti_or_skip(name: str) -> np.ndarray:
-    path = KITTI_GT / f"{name}.txt"
-    if not path.exists():
-        pytest.skip(f"KITTI ground truth not available at {path}")
-    return read_kitti_poses(path)
+    return read_kitti_poses(shared_path(f"kitti_gt_poses/{name}.txt"))
 
 
 # --------------------------------------------------------------------------------------------

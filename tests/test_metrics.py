@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from shared_data import shared_path
 
 from gloam_jax.errors import InputError
 from gloam_jax.metrics import (
@@ -19,7 +20,6 @@ from gloam_jax.metrics import (
     plot_evaluation,
 )
 
-KITTI_GT = Path("/work/shared/data/kitti_gt_poses")
 DEG_PER_100M = 180.0 / math.pi * 100.0
 
 
@@ -75,9 +75,8 @@ def test_identity_estimate_is_exactly_zero() -> None:
     assert np.all(res.t_err == 0.0) and np.all(res.r_err == 0.0)
 
 
-@pytest.mark.skipif(not (KITTI_GT / "04.txt").exists(), reason="KITTI poses not available")
 def test_identity_estimate_on_kitti_is_rounding_only() -> None:
-    gt = load_kitti(KITTI_GT / "04.txt")
+    gt = load_kitti(shared_path("kitti_gt_poses/04.txt"))
     res = kitti_rte(gt, gt.copy())
     assert res.num_segments > 0
     assert res.t_err_percent < 1e-12
@@ -216,7 +215,6 @@ def test_matches_evo_rpe_with_frame_delta(all_pairs: bool) -> None:
     inverse of the devkit's, which has the same translation norm and rotation angle; the devkit
     then divides by the nominal 100 m.
     """
-    pytest.importorskip("evo")
     from evo.core import metrics
     from evo.core.trajectory import PosePath3D
 

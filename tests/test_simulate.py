@@ -1,10 +1,10 @@
 """The LiDAR simulator: geometry of the returns, error sources, determinism, KITTI output."""
 
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
+from shared_data import shared_path
 
 from gloam_jax import io
 from gloam_jax.errors import InputError
@@ -19,8 +19,6 @@ from gloam_jax.simulate.preview import deskewed_points
 from gloam_jax.simulate.trajectory import default_Tr_cam_velo
 from gloam_jax.simulate.world import BUILDING, ROAD, TERRAIN, Ground, PrimitiveList, Scene
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
-KITTI_00 = SHARED / "kitti_gt_poses" / "00.txt"
 # One thinned sensor for every test: small and compiled only a few times.
 SENSOR = get_sensor("hdl64", num_beams=16, num_columns=400)
 NO_ERRORS = ErrorSwitches(False, False, False, False)
@@ -126,8 +124,8 @@ def test_simulation_is_deterministic_per_seed(tmp_path):
     assert (a / "velodyne/000001.bin").read_bytes() != (c / "velodyne/000001.bin").read_bytes()
 
 
-@pytest.mark.skipif(not KITTI_00.exists(), reason="shared KITTI poses not available")
 def test_kitti_window_reads_back_with_lidar_frame_ground_truth(tmp_path):
+    KITTI_00 = shared_path("kitti_gt_poses/00.txt")
     seq_dir = simulate(
         tmp_path, trajectory=KITTI_00, start=50, frames=3, num_beams=16, num_columns=400, seed=1
     )
