@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 from typer.testing import CliRunner
 
 from gloam_jax import __version__, io
@@ -73,3 +74,30 @@ def test_simulate_small_sequence(tmp_path):
     assert len(seq) == 2 and len(seq.scan(0)) > 1000
     bad = runner.invoke(app, ["simulate", str(tmp_path / "x"), "--style", "desert"])
     assert bad.exit_code == 2 and "unknown scene style 'desert'" in bad.output
+
+
+def test_run_folders_are_exclusive_and_latest_is_replaced_atomically(tmp_path):
+    from gloam_jax.cli.common import run_folder
+
+    with run_folder(tmp_path) as first, run_folder(tmp_path) as second:
+        assert first != second and first.is_dir() and second.is_dir()
+    assert (tmp_path / "latest").resolve() == first.resolve()  # the run that finished last
+    assert not list(tmp_path.glob(".latest-*"))  # no temporary link left
+    with pytest.raises(RuntimeError), run_folder(tmp_path) as failed:
+        raise RuntimeError("the run failed")
+    assert not failed.exists() and (tmp_path / "latest").resolve() == first.resolve()
+
+
+def test_run_folder_refuses_a_real_latest_directory_and_an_unwritable_root(tmp_path):
+    from gloam_jax.cli.common import run_folder
+    from gloam_jax.errors import InputError
+
+    (tmp_path / "latest").mkdir()
+    with pytest.raises(InputError, match="latest: is not a link to a run"), run_folder(tmp_path):
+        pass
+    (tmp_path / "file").write_text("not a folder")
+    with (
+        pytest.raises(InputError, match="cannot create a run folder"),
+        run_folder(tmp_path / "file" / "results"),
+    ):
+        pass

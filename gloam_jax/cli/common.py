@@ -6,10 +6,13 @@ Heavy modules (JAX, the pipeline, training) are imported inside the commands, so
 
 from __future__ import annotations
 
+import contextlib
 import functools
+import itertools
 import json
 import os
-from collections.abc import Callable
+import shutil
+from collections.abc import Callable, Iterator
 from datetime import datetime
 from pathlib import Path
 from typing import Annotated, TypeVar
@@ -120,15 +123,42 @@ def cache_dir() -> Path:
     return Path(base) / "gloam-jax"
 
 
-def new_run_dir(out: Path) -> Path:
-    """A new timestamped folder's path under ``out``; the run creates it as it writes, so
-    one that fails on bad input leaves nothing behind."""
-    return out / datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+@contextlib.contextmanager
+def run_folder(out: Path) -> Iterator[Path]:
+    """A new run folder under ``out``, made before the work starts (so an unwritable ``out``
+    fails at once) and exclusively (runs started in the same second get ``-1``, ``-2``...).
+    A run that fails removes its folder (and ``out``, if it made it and it is empty); one that
+    finishes becomes ``out/latest``."""
+    latest = out / "latest"
+    if latest.exists() and not latest.is_symlink():
+        raise InputError(latest, "is not a link to a run; move it away to keep it")
+    made_out = not out.exists()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+        for n in itertools.count():
+            run_dir = out / (stamp if n == 0 else f"{stamp}-{n}")
+            try:
+                run_dir.mkdir()
+                break
+            except FileExistsError:
+                continue
+    except OSError as err:
+        raise InputError(out, f"cannot create a run folder here ({err.strerror})") from None
+    try:
+        yield run_dir
+    except BaseException:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        if made_out and not any(out.iterdir()):
+            out.rmdir()
+        raise
+    mark_latest(run_dir)
 
 
 def mark_latest(run_dir: Path) -> None:
-    """Point ``out/latest`` at a finished run."""
+    """Point ``out/latest`` at a finished run, atomically (a new link renamed over the old)."""
     latest = run_dir.parent / "latest"
-    if latest.is_symlink() or latest.exists():
-        latest.unlink()
-    latest.symlink_to(run_dir.name)
+    temporary = run_dir.parent / f".latest-{os.getpid()}"
+    temporary.unlink(missing_ok=True)
+    temporary.symlink_to(run_dir.name)
+    os.replace(temporary, latest)

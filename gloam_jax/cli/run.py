@@ -13,10 +13,9 @@ from gloam_jax.cli.common import (
     app,
     cache_dir,
     console,
-    mark_latest,
     metrics_table,
-    new_run_dir,
     progress_bar,
+    run_folder,
     user_errors,
     write_json,
 )
@@ -132,9 +131,8 @@ def run(
     settings = load_config(config)
     if weights is not None:
         settings = dataclasses.replace(settings, model=str(weights))
-    run_dir = new_run_dir(out)
-    run_odometry(data, sequence, settings, frames, run_dir, features)
-    mark_latest(run_dir)
+    with run_folder(out) as run_dir:
+        run_odometry(data, sequence, settings, frames, run_dir, features)
 
 
 @app.command(epilog="Example:\n\n  gloam demo --frames 150 --out results")
@@ -157,11 +155,10 @@ def demo(
     seq_dir, elapsed = run_simulation(data, frames, seed=seed, style="urban", sequence="00")
     console.print(f"simulated sequence: {seq_dir} ({elapsed:.1f} s; cached for the next run)")
     gicp, gloam = load_config("gicp"), load_config("gloam")  # the shipped configs/*.yaml
-    run_dir = new_run_dir(out)
-    results = {
-        c.method: run_odometry(data, "00", c, None, run_dir / c.method) for c in (gicp, gloam)
-    }
-    mark_latest(run_dir)
+    with run_folder(out) as run_dir:
+        results = {
+            c.method: run_odometry(data, "00", c, None, run_dir / c.method) for c in (gicp, gloam)
+        }
     table = Table(title="GICP vs Generalized LOAM on the demo drive")
     for column in ("method", "t_err (%)", "r_err (deg/100 m)", "ATE rmse (m)", "ms/frame"):
         table.add_column(column, justify="right")
