@@ -66,6 +66,8 @@ def build_dataclass(cls, values: dict[str, Any], source: str, prefix: str = "", 
             isinstance(value, bool) or not isinstance(value, (int, float))
         ):
             raise InputError(source, f"{prefix}{name} must be a number, not {value!r}")
+        elif hint is int and not isinstance(value, int):
+            raise InputError(source, f"{prefix}{name} must be a whole number, not {value!r}")
         elif hint is bool and not isinstance(value, bool):
             raise InputError(source, f"{prefix}{name} must be true or false, not {value!r}")
         kwargs[name] = hint(value) if hint in (int, float) else value
@@ -93,12 +95,23 @@ def load_config(path: str | Path | None, cls: type = OdometryConfig):
         return cls()
     path = resolve_config(path)
     try:
-        values = yaml.safe_load(path.read_text()) or {}
+        values = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as err:
         raise InputError(path, f"not valid YAML ({err})".replace("\n", " ")) from None
+    except UnicodeDecodeError:
+        raise InputError(path, "not a text file (not UTF-8)") from None
+    except IsADirectoryError:
+        raise InputError(path, "is a directory, not a settings file") from None
+    except OSError as err:
+        raise InputError(path, f"cannot be read ({err.strerror})") from None
     if not isinstance(values, dict):
         raise InputError(path, "expected a mapping of settings at the top level")
-    return build_dataclass(cls, values, str(path))
+    try:
+        return build_dataclass(cls, values, str(path))
+    except InputError as err:
+        if err.source is None:  # a settings class's own check: name the file
+            raise InputError(path, err.problem) from None
+        raise
 
 
 def config_dict(config) -> dict[str, Any]:

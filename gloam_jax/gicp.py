@@ -35,7 +35,7 @@ from jax import Array
 
 from gloam_jax import association
 from gloam_jax import geometry as geo
-from gloam_jax.errors import InputError
+from gloam_jax.errors import check_setting, is_int, is_positive
 
 
 @dataclass(frozen=True)
@@ -51,9 +51,13 @@ class GICPConfig:
     adjoint: Literal["unrolled", "implicit"] = "unrolled"  # differentiation through LM
 
     def __post_init__(self) -> None:
+        for name in ("max_correspondence_distance", "rotation_eps", "translation_eps"):
+            check_setting(is_positive(v := getattr(self, name)), f"gicp.{name}", "positive", v)
+        for name in ("num_candidates", "max_iterations"):
+            check_setting(is_int(v := getattr(self, name), 1), f"gicp.{name}", "an integer >= 1", v)
         # optimistix's LM spends its first step initialising, so one step never moves.
-        if self.inner_steps < 2:
-            raise InputError(None, f"gicp.inner_steps must be at least 2, not {self.inner_steps}")
+        check_setting(is_int(self.inner_steps, 2), "gicp.inner_steps", "an integer >= 2",
+                      self.inner_steps)  # fmt: skip
 
 
 class Cloud(NamedTuple):

@@ -65,8 +65,17 @@ class GLOAMModel:
         return self.pca.transform(raw)
 
     def backbone(self) -> Backbone:
-        """The backbone that makes the raw features this model's PCA expects."""
-        return get_backbone(self.backbone_name, **self.backbone_options)
+        """The backbone that makes the raw features this model's PCA expects; InputError when
+        its feature width (where it is known before a scan) is not the PCA's."""
+        backbone = get_backbone(self.backbone_name, **self.backbone_options)
+        width = getattr(backbone, "dim", None)
+        if width is not None and width != self.pca.input_dim:
+            raise InputError(
+                None,
+                f"the model's PCA expects {self.pca.input_dim} features per point, but its "
+                f"backbone '{self.backbone_name}' gives {width}",
+            )
+        return backbone
 
     @property
     def learned(self) -> Learned:
@@ -234,6 +243,8 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
             raise InputError(p, f"'{name}' has shape {arrays[name].shape}, expected {shape}")
         if not np.all(np.isfinite(arrays[name])):
             raise InputError(p, f"'{name}' contains NaN or infinite values")
+    if not np.all(arrays["pca_scale"] > 0):
+        raise InputError(p, "'pca_scale' must be positive (it divides the features)")
     eps = metadata.get("eps")
     if isinstance(eps, bool) or not isinstance(eps, int | float) or not eps > 0:
         raise InputError(p, f"eps must be a positive number, got {eps!r}")

@@ -21,7 +21,7 @@ from threadpoolctl import ThreadpoolController
 
 from gloam_jax import geometry as geo
 from gloam_jax import pointcloud as pc
-from gloam_jax.errors import InputError
+from gloam_jax.errors import InputError, check_setting, is_int, is_positive
 from gloam_jax.gicp import GICPConfig, increment, retract_host
 from gloam_jax.learned import METHODS
 from gloam_jax.models import GLOAMModel, learned_parts, load_model
@@ -53,6 +53,15 @@ class OdometryConfig:
     MOVED: ClassVar[dict[str, str]] = {
         k: f"preprocess.{k}" for k in (*PreprocessConfig.SCAN_FIELDS, "regularizer")
     }
+
+    def __post_init__(self) -> None:
+        for name in ("keyframe_distance", "keyframe_angle_deg", "degeneracy_threshold",
+                     "lever_arm"):  # fmt: skip
+            check_setting(is_positive(v := getattr(self, name)), name, "positive", v)
+        check_setting(is_int(self.max_keyframes, 1), "max_keyframes", "an integer >= 1",
+                      self.max_keyframes)  # fmt: skip
+        check_setting(is_int(self.warmup_frames, 0), "warmup_frames", "an integer >= 0",
+                      self.warmup_frames)  # fmt: skip
 
 
 @dataclass
