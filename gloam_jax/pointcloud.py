@@ -16,6 +16,15 @@ from gloam_jax.errors import InputError
 # Padded sizes from 1 Ki to 448 Ki points, four per octave (1, 1.25, 1.5, 1.75 times a power
 # of two): at most 25 % padding, where powers of two alone waste up to half the work.
 BUCKETS = tuple(m << k for k in range(8, 17) for m in (4, 5, 6, 7))
+# Coordinates beyond this (m) are not measurements (float32 resolution there is metres, and
+# UTM-sized coordinates stay below 1e7): such points are dropped as invalid, like NaN.
+MAX_COORDINATE = 1e8
+
+
+def _valid_rows(xyz: np.ndarray) -> np.ndarray:
+    """Rows of (N, 3) that are finite and within MAX_COORDINATE on every axis: (N,) bool."""
+    with np.errstate(invalid="ignore"):
+        return np.all(np.abs(xyz) <= MAX_COORDINATE, axis=1)  # NaN compares False
 
 
 def _check_shape(points: np.ndarray, source: str | None) -> np.ndarray:
@@ -28,12 +37,14 @@ def _check_shape(points: np.ndarray, source: str | None) -> np.ndarray:
 
 
 def drop_invalid(points: np.ndarray, source: str | None = None) -> tuple[np.ndarray, int]:
-    """Remove rows with NaN or inf: (N, D) -> ((M, D), number removed). Empty input is an error."""
+    """Remove rows with NaN, inf or coordinates beyond MAX_COORDINATE: (N, D) -> ((M, D),
+    number removed). Empty input is an error."""
     points = _check_shape(points, source)
-    finite = np.all(np.isfinite(points[:, :3]), axis=1)
-    kept = points[finite]
+    kept = points[_valid_rows(points[:, :3])]
     if len(kept) == 0:
-        raise InputError(source, f"all {len(points)} points are NaN or infinite")
+        raise InputError(
+            source, f"all {len(points)} points are NaN, infinite or beyond {MAX_COORDINATE:g} m"
+        )
     return kept, int(len(points) - len(kept))
 
 
@@ -41,15 +52,20 @@ def range_mask(
     points: np.ndarray, min_range: float, max_range: float, source: str | None = None
 ) -> tuple[np.ndarray, int]:
     """Points of an (N, 3+) scan whose distance from the sensor lies in [min_range, max_range]:
-    (mask (N,), number of NaN / inf points, which the mask also drops). One pass over the
-    scan, for the per-frame path; bad shapes and empty or all-invalid scans are errors."""
+    (mask (N,), number of invalid points (see :func:`drop_invalid`), which the mask also
+    drops). One pass over the scan, for the per-frame path; bad shapes and empty or all-invalid
+    scans are errors."""
     points = _check_shape(points, source)
     xyz = points[:, :3]
-    r2 = np.einsum("ij,ij->i", xyz, xyz)
-    invalid = int(np.count_nonzero(~np.isfinite(r2)))
+    valid = _valid_rows(xyz)
+    invalid = int(np.count_nonzero(~valid))
     if invalid == len(points):
-        raise InputError(source, f"all {len(points)} points are NaN or infinite")
-    return (r2 >= min_range * min_range) & (r2 <= max_range * max_range), invalid
+        raise InputError(
+            source, f"all {len(points)} points are NaN, infinite or beyond {MAX_COORDINATE:g} m"
+        )
+    # In float64: float32 squares of valid coordinates (up to 1e8) would overflow to inf.
+    r2 = np.einsum("ij,ij->i", xyz, xyz, dtype=np.float64)
+    return valid & (r2 >= min_range * min_range) & (r2 <= max_range * max_range), invalid
 
 
 def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
@@ -69,7 +85,9 @@ def _voxel_groups(
     lows = [c.min() for c in cells]
     dims = [int(c.max() - lo) + 1 for c, lo in zip(cells, lows, strict=True)]
     if dims[0] * dims[1] * dims[2] >= 1 << 62:
-        raise ValueError(f"points spanning {dims} voxels of {voxel_size} m cannot be voxelised")
+        raise InputError(
+            None, f"points spanning {dims} voxels of {voxel_size} m are too far apart to voxelise"
+        )
     x, y, z = ((c - lo).astype(np.int64) for c, lo in zip(cells, lows, strict=True))
     # One integer per voxel in mixed radix keeps the (x, y, z) order. NumPy's default argsort
     # of 32-bit keys (most scans) is vectorised, unlike a stable sort or np.unique on 64-bit

@@ -44,7 +44,7 @@ def test_voxel_downsample_rejects_bad_points_and_passes_through_size_zero():
     np.testing.assert_array_equal(pc.voxel_downsample(points, 0.0), points)
     with pytest.raises(ValueError, match="NaN"):
         pc.voxel_downsample(np.vstack([points, [np.nan, 0, 0]]), 0.5)
-    with pytest.raises(ValueError, match="cannot be voxelised"):
+    with pytest.raises(InputError, match="too far apart to voxelise"):
         pc.voxel_downsample(np.array([[-1e12, -1e12, -1e12], [1e12, 1e12, 1e12]]), 0.01)
 
 
@@ -52,8 +52,31 @@ def test_range_mask_and_buckets():
     scan = np.array([[1.0, 0, 0], [5.0, 0, 0], [np.nan, 0, 0], [200.0, 0, 0]])
     keep, invalid = pc.range_mask(scan, 3.0, 100.0)
     assert keep.tolist() == [False, True, False, False] and invalid == 1
-    with pytest.raises(InputError, match="NaN or infinite"):
+    with pytest.raises(InputError, match="NaN, infinite or beyond"):
         pc.range_mask(np.full((3, 3), np.inf), 3.0, 100.0)
+
+
+def test_huge_coordinates_are_invalid_points_not_overflows():
+    """1e30 is no measurement: dropped and counted like NaN, not squared into inf (float32)."""
+    scan = np.array([[5.0, 0, 0], [1e30, 0, 0], [0, 1e9, 0], [0, 3e4, 0]], np.float32)
+    keep, invalid = pc.range_mask(scan, 3.0, 1e5)
+    assert keep.tolist() == [True, False, False, True] and invalid == 2
+    kept, dropped = pc.drop_invalid(scan)
+    assert len(kept) == 2 and dropped == 2
+    with pytest.raises(InputError, match="all 2 points are NaN, infinite or beyond"):
+        pc.drop_invalid(np.full((2, 3), 1e30, np.float32))
+
+
+def test_prepare_drops_a_far_outlier():
+    import gloam_jax
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-10, 10, size=(3000, 3))
+    points[:, 2] = np.where(rng.random(3000) < 0.5, 0.0, points[:, 2])
+    source = points.copy()
+    source[7] = 1e30
+    result = gloam_jax.prepare(source, downsampling_resolution=0.5)
+    assert result.num_dropped == 1
     assert pc.bucket_size(1000) == 1024 and pc.bucket_size(1025) == 1280
     sticky = pc.StickyBuckets()
     assert sticky("source", 1000) == pc.bucket_size(1200)
