@@ -187,3 +187,27 @@ def test_sensor_presets():
     assert hdl.column_times()[0] == pytest.approx(-0.05, abs=1e-4)
     with pytest.raises(InputError, match="unknown sensor"):
         get_sensor("hdl32e")
+
+
+def test_simulate_refuses_what_it_did_not_make_and_bad_sensor_settings(tmp_path):
+    from gloam_jax.errors import InputError
+
+    kw = dict(frames=2, num_beams=8, num_columns=200, seed=3)
+    seq_dir = simulate(tmp_path / "sim", **kw)
+    # A user's dataset: the same layout without the simulator's record is never overwritten.
+    (seq_dir / "simulation.json").unlink()
+    before = (tmp_path / "sim" / "poses" / "00.txt").read_bytes()
+    with pytest.raises(InputError, match="00.txt: holds data not made by the simulator"):
+        simulate(tmp_path / "sim", **kw)
+    assert (tmp_path / "sim" / "poses" / "00.txt").read_bytes() == before
+    for bad, message in (
+        (dict(num_beams=0), "num_beams must be an integer from 1 to 64"),
+        (dict(num_beams=-3), "num_beams must be an integer from 1 to 64"),
+        (dict(num_columns=0), "num_columns must be an integer >= 8"),
+        (dict(style="rural"), "unknown scene style 'rural'"),
+    ):
+        with pytest.raises(InputError, match=message):
+            simulate(tmp_path / "fresh", **(kw | bad))
+    # A refused style leaves nothing behind that would lock the folder for a valid run.
+    assert not (tmp_path / "fresh" / "sequences" / "00" / "simulation.json").exists()
+    assert simulate(tmp_path / "fresh", **kw).is_dir()

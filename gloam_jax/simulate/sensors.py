@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from gloam_jax.errors import InputError
+from gloam_jax.errors import InputError, check_setting, is_int
 
 
 @dataclass(frozen=True)
@@ -124,8 +124,11 @@ def get_sensor(
         raise InputError(None, f"unknown sensor {name!r}; choose one of {', '.join(SENSORS)}")
     sensor = SENSORS[name]
     if num_beams is not None:
+        check_setting(is_int(num_beams, 1) and num_beams <= sensor.num_beams, "num_beams",
+                      f"an integer from 1 to {sensor.num_beams} ({name})", num_beams)  # fmt: skip
         idx = np.round(np.linspace(0, sensor.num_beams - 1, num_beams)).astype(int)
         sensor = replace(sensor, elevations_deg=tuple(sensor.elevations_deg[i] for i in idx))
     if num_columns is not None:
+        check_setting(is_int(num_columns, 8), "num_columns", "an integer >= 8", num_columns)
         sensor = replace(sensor, num_columns=int(num_columns))
     return sensor

@@ -231,11 +231,20 @@ def write_sequence(
     root = Path(root)
     seq_dir = root / "sequences" / config.sequence
     meta_path = seq_dir / "simulation.json"
+    poses_path = root / "poses" / f"{config.sequence}.txt"
     meta = json.loads(json.dumps(config.to_json()))
-    if meta_path.exists() and json.loads(meta_path.read_text()).get("config") != meta:
-        raise InputError(meta_path, "holds a different simulation; choose another output folder")
-    summary = {"config": meta, "source": traj.source, "Tr_cam_velo": traj.Tr_cam_velo.tolist()}
-    io.write_atomic(meta_path, json.dumps(summary, indent=2))
+    if meta_path.exists():
+        if json.loads(meta_path.read_text()).get("config") != meta:
+            raise InputError(
+                meta_path, "holds a different simulation; choose another output folder"
+            )
+    elif poses_path.exists() or (seq_dir.is_dir() and any(seq_dir.iterdir())):
+        # Never overwrite a user's dataset: only the simulator's own folders are resumed.
+        found = poses_path if poses_path.exists() else seq_dir
+        raise InputError(
+            found, "holds data not made by the simulator; choose another output folder"
+        )
+    # The scene first: a bad setting (an unknown style) fails before anything is written.
     if scene is None:
         scene = build_scene(
             traj,
@@ -245,6 +254,8 @@ def write_sequence(
             dynamic=config.switches.moving_objects,
             detail=config.switches.nonplanar_detail,
         )
+    summary = {"config": meta, "source": traj.source, "Tr_cam_velo": traj.Tr_cam_velo.tolist()}
+    io.write_atomic(meta_path, json.dumps(summary, indent=2))
     sim = SweepSimulator(scene, traj, sensor, config.seed, config.switches)
     sim.plan_padding(np.unique(np.linspace(0, traj.num_frames - 1, 12).astype(int)))
     for sub in ("velodyne", "labels", "timestamps"):
