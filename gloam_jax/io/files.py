@@ -88,10 +88,11 @@ def parse_rows(text: str, name: str, ncols: int, what: str) -> np.ndarray:
 
 def load_npy(path: PathLike) -> np.ndarray:
     """The array of an ``.npy`` file (no pickles); anything else is an InputError."""
+    data = read_bytes(path)
     try:
-        array = np.load(io.BytesIO(read_bytes(path)), allow_pickle=False)
-    except (ValueError, OSError, EOFError) as e:
-        raise InputError(path, f"not a valid .npy file ({e})") from None
+        array = np.load(io.BytesIO(data), allow_pickle=False)
+    except Exception as e:  # a damaged header fails in many ways (tokenize, syntax, ...)
+        raise InputError(path, f"not a valid .npy file ({type(e).__name__}: {e})") from None
     if not isinstance(array, np.ndarray):  # np.load also opens .npz archives
         raise InputError(path, "not a valid .npy file (it is an .npz archive)")
     return array
