@@ -162,9 +162,9 @@ def test_cli_train_and_a_changed_config(sim_sequence, tmp_path, model):
     result = runner.invoke(app, [*args, "--mode", "tpe"])
     assert result.exit_code == 2
     assert "other settings (mode)" in result.output
-    # The overrides reach the settings that the run folder checks.
+    # The overrides reach the settings that the run folder checks (counts may change).
     result = runner.invoke(app, [*args, "--seed", "3", "--n-trials", "7"])
     assert result.exit_code == 2
-    assert "other settings (seed, tpe)" in result.output
+    assert "other settings (seed)" in result.output
     result = runner.invoke(app, ["train", "--config", str(tmp_path / "missing.yaml")])
     assert result.exit_code == 2 and "file not found" in result.output

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from gloam_jax.cli.common import Tasks, app, console, progress_bar, user_errors
+from gloam_jax.cli.common import Tasks, app, console, err_console, progress_bar, user_errors
 from gloam_jax.errors import InputError
 
 
@@ -66,7 +67,12 @@ def init_model(
         "Examples:\n\n"
         "  gloam train --config configs/train_grad.yaml --out runs/grad\n\n"
         "  gloam train --mode tpe --config configs/train_tpe.yaml --out runs/tpe --trials 300\n\n"
-        "Rerunning a command with the same --out resumes it."
+        "  gloam train --config configs/train_tpe.yaml --out runs/tpe --workers 4 "
+        "--storage postgresql://gloam:secret@db-host/gloam --study-name search1\n\n"
+        "Rerunning a command with the same --out resumes it (and may raise --trials or --steps); "
+        "the same TPE command on another machine, with the same --storage and study name, "
+        "joins the search. Ctrl-C or SIGTERM ends the running trials as failed (exit 130 or "
+        "143); rerun to resume."
     )
 )
 @user_errors
@@ -95,8 +101,47 @@ def train(
     cache: Annotated[
         Path | None, typer.Option(help="Folder for prepared training windows (shared by runs).")
     ] = None,
+    storage: Annotated[
+        str | None,
+        typer.Option(
+            help="TPE study database URL (default sqlite:///OUT/study.db); a PostgreSQL URL "
+            "(pip install 'gloam-jax[postgres]') is shared by workers on several machines."
+        ),
+    ] = None,
+    study_name: Annotated[
+        str | None, typer.Option(help="TPE study name (default: the --out folder's name).")
+    ] = None,
+    workers: Annotated[int, typer.Option(min=1, help="TPE worker processes on this machine.")] = 1,
 ) -> None:
     """Train the MLPs by TPE (the paper's black-box search) or by gradients through GICP."""
+    previous = signal.signal(signal.SIGTERM, _terminate)
+    try:
+        _train(config, mode, data, out, trials, seed, steps, learning_rate, cache, storage,
+               study_name, workers)  # fmt: skip
+    except KeyboardInterrupt as stop:
+        code = 143 if isinstance(stop, Terminated) else 130
+        what = "SIGTERM" if code == 143 else "interrupted"
+        err_console.print(
+            f"[red]{what}:[/red] the running work ended as failed; rerun the same command "
+            f"to resume ({out})",
+            highlight=False,
+        )
+        raise typer.Exit(code) from None
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, taking the same way out as Ctrl-C."""
+
+
+def _terminate(signum, frame) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one is enough: let the trial be marked
+    raise Terminated
+
+
+def _train(config, mode, data, out, trials, seed, steps, learning_rate, cache, storage,
+           study_name, workers) -> None:  # fmt: skip
     import dataclasses
 
     from gloam_jax.config import load_config
@@ -110,13 +155,23 @@ def train(
         cfg = dataclasses.replace(cfg, mode=mode)
     if data is not None:
         cfg = dataclasses.replace(cfg, data=str(data))
-    if trials is not None:
-        cfg = dataclasses.replace(cfg, tpe=dataclasses.replace(cfg.tpe, n_trials=trials))
+    tpe = {"n_trials": trials, "storage": storage, "study_name": study_name}
+    tpe = {k: v for k, v in tpe.items() if v is not None}
+    cfg = dataclasses.replace(cfg, tpe=dataclasses.replace(cfg.tpe, **tpe))
     if seed is not None:
         cfg = dataclasses.replace(cfg, seed=seed)
     grad = {"steps": steps, "learning_rate": learning_rate}
     grad = {k: v for k, v in grad.items() if v is not None}
     cfg = dataclasses.replace(cfg, grad=dataclasses.replace(cfg.grad, **grad))
+    store = None
+    if cfg.mode == "tpe":
+        from gloam_jax.training import tpe as tpe_mode
+
+        # The storage and its study are checked before any data is prepared.
+        store = tpe_mode.open_storage(cfg, out)
+        tpe_mode.check_study(store, tpe_mode.study_name(cfg, out), cfg)
+    elif workers != 1 or storage is not None or study_name is not None:
+        raise InputError(None, "--workers, --storage and --study-name are for --mode tpe")
     with progress_bar() as bar:
         step = Tasks(bar)
 
@@ -129,7 +184,7 @@ def train(
         if cfg.mode == "tpe":
             from gloam_jax.training.tpe import train_tpe
 
-            model = train_tpe(problem, tick)
+            model = train_tpe(problem, tick, workers=workers, cache_dir=cache, storage=store)
         else:
             from gloam_jax.training.grad import train_grad
 

@@ -21,11 +21,26 @@ from gloam_jax.training.protocol import TRAIN_SEQUENCES
 class TPEConfig:
     """The paper's black-box search: optuna's TPE over every MLP weight."""
 
-    n_trials: int = 200
+    n_trials: int = 200  # finished (complete or pruned) trials of the study, all workers together
     n_startup_trials: int = 10  # random trials before TPE models the good ones
     bound: float = 1.0  # each weight searched in [init - bound, init + bound]
     storage: str | None = None  # optuna RDB URL; None: sqlite:///RUN/study.db
-    study_name: str = "gloam"
+    study_name: str | None = None  # None: the run folder's name
+    # A worker marks its running trial alive every heartbeat_interval s; a trial silent for
+    # grace_period s (its worker was killed) is failed and its weights queued again.
+    heartbeat_interval: int = 30
+    grace_period: int = 120
+
+    def __post_init__(self) -> None:
+        for name in ("n_trials", "heartbeat_interval", "grace_period"):
+            if getattr(self, name) < 1:
+                raise InputError(None, f"tpe.{name} must be >= 1, not {getattr(self, name)}")
+        if self.grace_period <= self.heartbeat_interval:
+            raise InputError(
+                None,
+                f"tpe.grace_period ({self.grace_period} s) must be longer than "
+                f"tpe.heartbeat_interval ({self.heartbeat_interval} s)",
+            )
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,9 @@
 """What both training modes share: the run folder, the starting model, the prepared training
 data, the trainable parameters and the hard-association evaluation of the training loss.
 
-A run folder holds ``config.yaml`` (the settings; a later run in the same folder must use the
-same ones, and then resumes), ``init_model.npz`` (the start), ``cache/`` (prepared windows),
+A run folder holds ``config.yaml`` (the settings, written once the setup has succeeded; a later
+run in the same folder must use the same ones, except the counts of trials and steps, which it may
+raise, and then resumes), ``init_model.npz`` (the start), ``cache/`` (prepared windows),
 ``history.json`` (training loss against wall time), ``loss_curve.png`` and, at the end,
 ``model.npz`` (the best weights found, with their provenance).
 """
@@ -10,6 +11,7 @@ same ones, and then resumes), ``init_model.npz`` (the start), ``cache/`` (prepar
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import time
 from collections.abc import Callable
@@ -22,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from gloam_jax import io
-from gloam_jax.config import config_dict, dump_config
+from gloam_jax.config import config_dict, dump_config, load_config
 from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone, fit_pca, get_backbone
 from gloam_jax.learned import Learned
@@ -104,23 +106,44 @@ class Problem:
         return model
 
 
-def _check_run_dir(config: TrainConfig, run_dir: Path) -> None:
-    """Write the settings, or check that a resumed run uses the same ones."""
-    path = run_dir / "config.yaml"
-    if path.exists():
-        from gloam_jax.config import load_config
+# What a resumed run may change: the counts (a run may be extended) and where its TPE study lives
+# and how its workers keep in touch. Everything else binds a run folder and a study to a run.
+UNBOUND = {
+    "tpe": ("n_trials", "storage", "study_name", "heartbeat_interval", "grace_period"),
+    "grad": ("steps",),
+}
 
-        old = load_config(path, TrainConfig)
-        if config_dict(old) != config_dict(config):
-            changed = [k for k, v in config_dict(config).items() if config_dict(old)[k] != v]
-            raise InputError(
-                path,
-                f"this run folder holds a run with other settings ({', '.join(changed)}); "
-                "use another --out to start a new one",
-            )
-    else:
-        run_dir.mkdir(parents=True, exist_ok=True)
-        dump_config(config, path)
+
+def binding_settings(config: TrainConfig) -> dict[str, Any]:
+    """The settings that a run folder (and a TPE study) is bound to: all but :data:`UNBOUND`."""
+    settings = config_dict(config)
+    for section, keys in UNBOUND.items():
+        for key in keys:
+            settings[section].pop(key, None)
+    return settings
+
+
+def settings_hash(config: TrainConfig) -> str:
+    """A short digest of :func:`binding_settings`: what a TPE study records as its run."""
+    text = json.dumps(binding_settings(config), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _check_run_dir(config: TrainConfig, run_dir: Path) -> bool:
+    """Check that a resumed run uses the folder's settings (the counts may change); returns
+    whether the folder holds a run (its ``config.yaml``, written when a setup succeeded)."""
+    path = run_dir / "config.yaml"
+    if not path.exists():
+        return False
+    old, new = binding_settings(load_config(path, TrainConfig)), binding_settings(config)
+    if old != new:
+        changed = [k for k, v in new.items() if old.get(k) != v]
+        raise InputError(
+            path,
+            f"this run folder holds a run with other settings ({', '.join(changed)}); "
+            "use another --out to start a new one",
+        )
+    return True
 
 
 def setup(
@@ -135,9 +158,14 @@ def setup(
     resumed run starts alike) and the prepared windows (cached in ``cache_dir``, default
     ``run_dir/cache``)."""
     run_dir = Path(run_dir)
-    _check_run_dir(config, run_dir)
+    resumed = _check_run_dir(config, run_dir)
+    try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(run_dir, f"cannot create the run folder ({err.strerror})") from None
     start = run_dir / "init_model.npz"
-    if start.is_file():
+    # A start left by a setup that failed (no config.yaml yet) may come from other settings.
+    if resumed and start.is_file():
         model = load_model(start)
     elif config.init_model is not None:
         model = load_model(config.init_model)
@@ -171,6 +199,11 @@ def setup(
         cache_dir=run_dir / "cache" if cache_dir is None else cache_dir,
         progress=step,
     )
+    # Written last, so that a setup that fails does not bind the folder; rewritten when a
+    # resumed run raises a count.
+    path = run_dir / "config.yaml"
+    if not resumed or config_dict(load_config(path, TrainConfig)) != config_dict(config):
+        dump_config(config, path)
     hard = dataclasses.replace(config.batch, association="hard")
     return Problem(config, run_dir, model, data, Evaluator(data, hard))
 
