@@ -13,6 +13,7 @@ from shared_data import shared_path
 
 from gloam_jax import io as gio
 from gloam_jax.errors import InputError
+from gloam_jax.io.scans import check_scan, read_scan_with_times, write_scan_pcd
 
 
 def random_poses(n: int, seed: int = 0) -> np.ndarray:
@@ -408,14 +409,62 @@ def test_unsupported_scan_extension(tmp_path):
         gio.read_scan(path)
 
 
-def test_pcd_binary_compressed_unsupported(tmp_path):
-    path = tmp_path / "packed.pcd"
-    path.write_bytes(
+@pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
+def test_pcd_round_trip_with_times(tmp_path, data):
+    rng = np.random.default_rng(4)
+    points = rng.normal(size=(300, 4)).astype(np.float32)
+    points[100:200] = points[100]  # repeats: LZF back references
+    times = np.linspace(0.0, 0.1, 300)
+    path = tmp_path / f"{data}.pcd"
+    write_scan_pcd(path, points, data, times=times)
+    check_scan(path)
+    read, read_times = read_scan_with_times(path)
+    np.testing.assert_array_equal(read, points)
+    np.testing.assert_allclose(read_times, times, rtol=1e-12)
+
+
+def test_lzf_round_trip_and_a_known_stream():
+    from gloam_jax.io.scans import lzf_compress, lzf_decompress
+
+    data = bytes(np.random.default_rng(5).integers(0, 3, 5000, dtype=np.uint8)) + b"abc" * 400
+    assert lzf_decompress(lzf_compress(data), len(data)) == data
+    # A hand-made stream: a literal 'a'; a 3-byte copy from 1 back (short form); a 9-byte
+    # copy from 1 back (long form: length 7 + extra byte 0, + 2).
+    assert lzf_decompress(b"\x00a\x20\x00\xe0\x00\x00", 13) == b"a" * 13
+
+
+def test_pcd_binary_compressed_corrupt(tmp_path):
+    header = (
         b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\n"
-        b"POINTS 1\nDATA binary_compressed\n\x00\x00\x00\x00"
+        b"POINTS 1\nDATA binary_compressed\n"
     )
-    with pytest.raises(InputError, match=r"packed\.pcd: DATA binary_compressed .*unsupported"):
+    path = tmp_path / "packed.pcd"
+    path.write_bytes(header + b"\x00\x00\x00\x00")
+    with pytest.raises(InputError, match=r"packed\.pcd: truncated: binary_compressed"):
         gio.read_scan(path)
+    # A back reference before the start of the output.
+    path.write_bytes(header + np.array([3, 12], "<u4").tobytes() + b"\xe0\x00\x05")
+    with pytest.raises(InputError, match=r"packed\.pcd: corrupt LZF data"):
+        gio.read_scan(path)
+
+
+def test_cheap_checks_find_bad_files_without_reading_them(tmp_path):
+    (tmp_path / "odd.bin").write_bytes(b"\x00" * 17)
+    with pytest.raises(InputError, match=r"odd\.bin: file size 17 bytes is not a multiple of 16"):
+        check_scan(tmp_path / "odd.bin")
+    with pytest.raises(InputError, match=r"gone\.pcd: file not found"):
+        check_scan(tmp_path / "gone.pcd")
+    write_scan_pcd(tmp_path / "cut.pcd", np.zeros((10, 4), np.float32), "binary")
+    raw = (tmp_path / "cut.pcd").read_bytes()
+    (tmp_path / "cut.pcd").write_bytes(raw[:-20])
+    with pytest.raises(InputError, match=r"cut\.pcd: truncated: 10 points need 160 bytes"):
+        check_scan(tmp_path / "cut.pcd")
+    np.save(tmp_path / "flat.npy", np.zeros(12, np.float32))
+    with pytest.raises(InputError, match=r"flat\.npy: expected a numeric \(N, 3\)"):
+        check_scan(tmp_path / "flat.npy")
+    (tmp_path / "bad.ply").write_bytes(b"PLY?")
+    with pytest.raises(InputError, match=r"bad\.ply: not a PLY file"):
+        check_scan(tmp_path / "bad.ply")
 
 
 def test_pcd_truncated(tmp_path):
@@ -483,8 +532,6 @@ def test_sequence_labels_wrong_count(tmp_path):
     [
         ("", r"sequences[/\\]03: sequence 03 not found"),
         ("sequences/03/velodyne", r"velodyne: velodyne folder not found"),
-        ("sequences/03/calib.txt", r"calib\.txt: file not found"),
-        ("sequences/03/times.txt", r"times\.txt: file not found"),
     ],
 )
 def test_sequence_missing_parts(tmp_path, remove, match):
@@ -498,6 +545,20 @@ def test_sequence_missing_parts(tmp_path, remove, match):
         (tmp_path / "sequences").mkdir()
     with pytest.raises(InputError, match=match):
         gio.KittiSequence(tmp_path, 3)
+
+
+def test_sequence_without_calib_and_times_takes_said_defaults(tmp_path):
+    made = make_sequence(tmp_path, poses=False)
+    (made["dir"] / "calib.txt").unlink()
+    (made["dir"] / "times.txt").unlink()
+    seq = gio.KittiSequence(tmp_path, 3)
+    np.testing.assert_array_equal(seq.Tr_cam_velo, np.eye(4))
+    np.testing.assert_allclose(seq.times, [0.0, 0.1, 0.2, 0.3])
+    assert [d.split(":")[0] for d in seq.defaults] == [
+        "no calib.txt",
+        "no times.txt",
+        "no poses/03.txt",
+    ]
 
 
 def test_sequence_missing_root(tmp_path):

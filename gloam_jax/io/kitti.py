@@ -16,7 +16,7 @@ import numpy as np
 from gloam_jax.errors import InputError
 from gloam_jax.io.files import PathLike, load_npy, parse_rows, read_bytes, read_text, write_atomic
 from gloam_jax.io.poses import cam_to_lidar_poses, read_kitti_poses, to_homogeneous
-from gloam_jax.io.scans import read_scan
+from gloam_jax.io.scans import check_scan, read_scan
 
 __all__ = [
     "KittiSequence",
@@ -125,11 +125,13 @@ def _read_only(a: np.ndarray) -> np.ndarray:
 class KittiSequence:
     """One sequence of the KITTI odometry layout under ``root``.
 
-    ``root/sequences/NN/{velodyne/%06d.bin, calib.txt, times.txt}`` are required;
-    ``root/poses/NN.txt``, ``sequences/NN/labels/%06d.label`` and per-point relative
-    timestamps ``sequences/NN/timestamps/%06d.npy`` (float32 seconds) are optional. Frames
-    are the sorted ``.bin`` files. Everything but the scans is read and checked on
-    construction.
+    ``root/sequences/NN/velodyne/%06d.bin`` are required; ``sequences/NN/calib.txt`` (without
+    it, ``Tr`` is the identity: poses stay in the LiDAR frame), ``sequences/NN/times.txt``
+    (without it, 10 Hz), ``root/poses/NN.txt``, ``sequences/NN/labels/%06d.label`` and
+    per-point timestamps ``sequences/NN/timestamps/%06d.npy`` (any convention, see
+    :func:`gloam_jax.preprocess.normalise_times`) are optional; ``defaults`` says which
+    defaults were taken. Frames are the sorted ``.bin`` files. Everything but the scans is
+    read and checked on construction.
     """
 
     def __init__(self, root: PathLike, sequence: int | str) -> None:
@@ -151,18 +153,27 @@ class KittiSequence:
         if n == 0:
             raise InputError(velodyne, "no .bin scans found")
 
+        self.defaults: list[str] = []  # what was missing, and what was assumed instead
         calib_path = self.sequence_dir / "calib.txt"
-        calib = read_calib(calib_path)
-        if "Tr" not in calib:
-            raise InputError(calib_path, "no 'Tr' (Velodyne to camera 0) entry")
-        self._Tr = _read_only(calib["Tr"])
+        if calib_path.exists():
+            calib = read_calib(calib_path)
+            if "Tr" not in calib:
+                raise InputError(calib_path, "no 'Tr' (Velodyne to camera 0) entry")
+            self._Tr = _read_only(calib["Tr"])
+        else:
+            self._Tr = _read_only(np.eye(4))
+            self.defaults.append("no calib.txt: poses in the LiDAR frame (Tr = identity)")
 
         times_path = self.sequence_dir / "times.txt"
-        self._times = _read_only(read_times(times_path))
-        if len(self._times) != n:
-            raise InputError(
-                times_path, f"{len(self._times)} timestamps but {n} scans in {velodyne}"
-            )
+        if times_path.exists():
+            self._times = _read_only(read_times(times_path))
+            if len(self._times) != n:
+                raise InputError(
+                    times_path, f"{len(self._times)} timestamps but {n} scans in {velodyne}"
+                )
+        else:
+            self._times = _read_only(np.arange(n) * 0.1)
+            self.defaults.append("no times.txt: scans taken at 10 Hz")
 
         poses_path = self.root / "poses" / f"{sequence}.txt"
         self._poses_cam: np.ndarray | None = None
@@ -174,6 +185,8 @@ class KittiSequence:
                     poses_path, f"{len(self._poses_cam)} poses but {n} scans in {velodyne}"
                 )
             self._poses_lidar = _read_only(cam_to_lidar_poses(self._poses_cam, self._Tr))
+        else:
+            self.defaults.append(f"no poses/{sequence}.txt: no ground truth, not scored")
 
     def __len__(self) -> int:
         return len(self._scan_paths)
@@ -200,9 +213,19 @@ class KittiSequence:
             return None
         return read_labels(path, expected_count=self._point_count(i))
 
+    def _times_path(self, i: int) -> Path:
+        return self.sequence_dir / "timestamps" / f"{self._scan_paths[i].stem}.npy"
+
+    @property
+    def has_point_times(self) -> bool:
+        """Whether the sequence has per-point times (its ``timestamps/`` folder)."""
+        return (self.sequence_dir / "timestamps").is_dir()
+
     def point_times(self, i: int) -> np.ndarray | None:
-        """Frame ``i``'s ``(N,)`` float32 per-point times (seconds, relative), or None."""
-        path = self.sequence_dir / "timestamps" / f"{self._scan_paths[i].stem}.npy"
+        """Frame ``i``'s ``(N,)`` per-point times as stored (float32 or float64; integers as
+        int64), or None. The simulator writes float32 seconds from mid-sweep; any convention
+        is accepted downstream (:func:`gloam_jax.preprocess.normalise_times`)."""
+        path = self._times_path(i)
         if not path.exists():
             return None
         times = load_npy(path)
@@ -211,7 +234,19 @@ class KittiSequence:
             raise InputError(
                 path, f"expected {n} numeric point times, got shape {times.shape} {times.dtype}"
             )
-        return times.astype(np.float32)
+        if times.dtype.kind in "iu":
+            return times.astype(np.int64)
+        return times if times.dtype in (np.float32, np.float64) else times.astype(np.float64)
+
+    def check(self, frames: range | None = None) -> None:
+        """Cheap checks of each scan (and its per-point times file) before the first frame is
+        computed: sizes and headers, not the data (:func:`gloam_jax.io.scans.check_scan`)."""
+        for i in range(len(self)) if frames is None else frames:
+            path = self._scan_paths[i]
+            check_scan(path)
+            times = self._times_path(i)
+            if self.has_point_times and not times.exists():
+                raise InputError(times, "missing: the other scans have per-point times")
 
     @property
     def times(self) -> np.ndarray:

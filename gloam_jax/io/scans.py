@@ -2,7 +2,10 @@
 
 A scan is a float32 ``(N, 4)`` array ``[x, y, z, intensity]`` in the sensor frame, metres.
 Points with NaN coordinates are returned as they are, not an error: later stages drop and count
-them. A KITTI ``.bin`` holds the points as little-endian float32 ``x y z i`` records.
+them. A KITTI ``.bin`` holds the points as little-endian float32 ``x y z i`` records. PCD and PLY
+files may carry per-point times in a field named ``t``, ``time``, ``timestamp``,
+``time_offset`` or ``offset_time`` (any unit or origin: see :mod:`gloam_jax.preprocess`).
+PCD's ``binary_compressed`` data is LZF-compressed, one field after another (PCL's layout).
 """
 
 from __future__ import annotations
@@ -15,22 +18,40 @@ import numpy as np
 from gloam_jax.errors import InputError
 from gloam_jax.io.files import PathLike, load_npy, read_bytes, write_atomic
 
-__all__ = ["read_scan", "write_scan_bin"]
+__all__ = [
+    "SCAN_SUFFIXES",
+    "check_scan",
+    "has_time_field",
+    "read_scan",
+    "read_scan_with_times",
+    "write_scan_bin",
+    "write_scan_pcd",
+]
+
+SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".npy")
 
 # Field names taken as intensity, in order of preference (PCL, PLY exporters, SemanticKITTI).
 _INTENSITY_NAMES = ("intensity", "i", "reflectance", "remission", "scalar_intensity")
+# Field names taken as per-point time (Ouster "t" in ns, Velodyne "time", Hesai "timestamp",
+# Livox "offset_time").
+_TIME_NAMES = ("t", "time", "timestamp", "time_offset", "offset_time", "timestamps")
 
 
 def read_scan(path: PathLike) -> np.ndarray:
     """Point cloud file -> ``(N, 4)`` float32 ``[x, y, z, intensity]``; format by extension.
 
-    ``.bin`` (KITTI float32 x y z i), ``.pcd`` (ascii / binary, any field order and numeric
-    type; ``binary_compressed`` is not supported), ``.ply`` (ascii / binary vertex element),
-    ``.npy`` (``(N, 3)`` or ``(N, 4+)``). Intensity is zero when the file has none. NaN points
-    are kept.
+    ``.bin`` (KITTI float32 x y z i), ``.pcd`` (ascii / binary / binary_compressed, any field
+    order and numeric type), ``.ply`` (ascii / binary vertex element), ``.npy`` (``(N, 3)`` or
+    ``(N, 4+)``). Intensity is zero when the file has none. NaN points are kept.
     """
+    return read_scan_with_times(path)[0]
+
+
+def read_scan_with_times(path: PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`read_scan` and the file's per-point times ``(N,)`` as stored (float64, or int64
+    for integer fields), or None when it has no time field (``.bin`` and ``.npy`` never do)."""
     suffix = Path(path).suffix.lower()
-    readers: dict[str, Callable[[PathLike], np.ndarray]] = {
+    readers: dict[str, Callable[[PathLike], dict[str, np.ndarray]]] = {
         ".bin": _read_bin,
         ".pcd": _read_pcd,
         ".ply": _read_ply,
@@ -40,10 +61,99 @@ def read_scan(path: PathLike) -> np.ndarray:
         raise InputError(
             path, f"unsupported scan format '{suffix}' (expected .bin, .pcd, .ply or .npy)"
         )
-    points = readers[suffix](path)
+    columns = readers[suffix](path)
+    points = _assemble(path, columns)
     if len(points) == 0:
         raise InputError(path, "empty scan (no points)")
-    return points
+    times = next((columns[k] for k in _TIME_NAMES if k in columns), None)
+    if times is not None:
+        times = times.astype(np.int64 if times.dtype.kind in "iu" else np.float64)
+    return points, times
+
+
+def check_scan(path: PathLike) -> None:
+    """Cheap checks of a scan file before any frame is computed: it exists and is not empty,
+    a ``.bin``'s size is a multiple of 16, a ``.pcd``/``.ply``/``.npy`` header parses and its
+    binary data is as long as the header says. The points themselves are not read."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in SCAN_SUFFIXES:
+        raise InputError(
+            path, f"unsupported scan format '{suffix}' (expected .bin, .pcd, .ply or .npy)"
+        )
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as f:
+            head = f.read(1 << 16)
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except OSError as err:
+        raise InputError(path, f"cannot be read ({err.strerror})") from None
+    if size == 0:
+        raise InputError(path, "empty file")
+    if suffix == ".bin":
+        if size % 16:
+            raise InputError(
+                path, f"file size {size} bytes is not a multiple of 16 (float32 x y z i)"
+            )
+    elif suffix == ".npy":
+        load_npy_header(path, head)
+    elif suffix == ".pcd":
+        if b"\nDATA" not in head and not head.startswith(b"DATA"):
+            head = read_bytes(path)  # a header longer than 64 KiB
+        names, dtype, n, fmt, start = _pcd_header(path, head)
+        if fmt == "binary" and size < start + n * dtype.itemsize:
+            raise InputError(
+                path, f"truncated: {n} points need {n * dtype.itemsize} bytes of data, "
+                f"found {size - start}"
+            )  # fmt: skip
+        if fmt == "binary_compressed":
+            if len(head) < start + 8:
+                raise InputError(path, "truncated: binary_compressed PCD without its size words")
+            packed, unpacked = np.frombuffer(head, "<u4", count=2, offset=start).tolist()
+            if unpacked != n * dtype.itemsize or size < start + 8 + packed:
+                raise InputError(path, "truncated or inconsistent binary_compressed data")
+    elif suffix == ".ply":
+        if not head.startswith(b"ply"):
+            raise InputError(path, "not a PLY file (no 'ply' magic line)")
+        _split_header(path, head if b"end_header" in head else read_bytes(path), "end_header")
+
+
+def has_time_field(path: PathLike) -> bool:
+    """Whether a scan file carries per-point times: a PCD or PLY header naming a time field
+    (``t``, ``time``, ``timestamp``, ...); ``.bin`` and ``.npy`` scans never do."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in (".pcd", ".ply"):
+        return False
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    if suffix == ".pcd":
+        names = _pcd_header(path, head if b"DATA" in head else read_bytes(path))[0]
+    else:
+        lines, _ = _split_header(
+            path, head if b"end_header" in head else read_bytes(path), "end_header"
+        )
+        names = [w[-1].lower() for w in lines if w[0] == "property"]
+    return any(name in _TIME_NAMES for name in names)
+
+
+def load_npy_header(path: PathLike, head: bytes) -> None:
+    """Check an ``.npy`` file's header: a numeric (N, 3) or (N, 4+) array."""
+    import io as _io
+
+    try:
+        stream = _io.BytesIO(head)
+        version = np.lib.format.read_magic(stream)
+        read = {(1, 0): np.lib.format.read_array_header_1_0}.get(
+            version, np.lib.format.read_array_header_2_0
+        )
+        shape, _, dtype = read(stream)
+    except (ValueError, OSError, SyntaxError):
+        raise InputError(path, "not a valid .npy file (header unreadable)") from None
+    if len(shape) != 2 or shape[1] < 3 or dtype.kind not in "fiu":
+        raise InputError(
+            path, f"expected a numeric (N, 3) or (N, 4+) array, got shape {shape} dtype {dtype}"
+        )
 
 
 def write_scan_bin(path: PathLike, points: np.ndarray) -> None:
@@ -62,14 +172,16 @@ def _read_bin(path: PathLike) -> np.ndarray:
         raise InputError(
             path, f"file size {len(raw)} bytes is not a multiple of 16 (float32 x y z i)"
         )
-    return np.frombuffer(raw, dtype="<f4").reshape(-1, 4).astype(np.float32)
+    table = np.frombuffer(raw, dtype="<f4").reshape(-1, 4)
+    return dict(zip(("x", "y", "z", "intensity"), table.T, strict=True))
 
 
-def _assemble(path: PathLike, columns: dict[str, np.ndarray], n: int) -> np.ndarray:
+def _assemble(path: PathLike, columns: dict[str, np.ndarray]) -> np.ndarray:
     """Pick x, y, z and intensity out of named 1-D columns -> ``(n, 4)`` float32."""
     missing = [c for c in "xyz" if c not in columns]
     if missing:
         raise InputError(path, f"no {', '.join(missing)} field (fields: {', '.join(columns)})")
+    n = len(columns["x"])
     intensity = next((columns[k] for k in _INTENSITY_NAMES if k in columns), np.zeros(n))
     return np.column_stack([columns["x"], columns["y"], columns["z"], intensity]).astype(np.float32)
 
@@ -129,8 +241,9 @@ def _binary_table(path: PathLike, raw: bytes, offset: int, dtype: np.dtype, n: i
 _PCD_TYPES = {"F": "f", "I": "i", "U": "u"}
 
 
-def _read_pcd(path: PathLike) -> np.ndarray:
-    raw = read_bytes(path)
+def _pcd_header(path: PathLike, raw: bytes) -> tuple[list[str], np.dtype, int, str, int]:
+    """A PCD header -> (field names, one point's record type, points, DATA format, data
+    offset). Checks the header only, not the data."""
     lines, data_start = _split_header(path, raw, "data")
     header = {words[0].upper(): words[1:] for words in lines}
     for key in ("FIELDS", "SIZE", "TYPE"):
@@ -150,35 +263,184 @@ def _read_pcd(path: PathLike) -> np.ndarray:
     if not len(names) == len(sizes) == len(types) == len(counts):
         raise InputError(path, "PCD header FIELDS, SIZE, TYPE and COUNT differ in length")
     fmt = header["DATA"][0].lower() if header["DATA"] else ""
-    if fmt == "binary_compressed":
-        raise InputError(
-            path,
-            "DATA binary_compressed PCD is unsupported; re-save it as binary or ascii "
-            "(e.g. pcl_convert_pcd_ascii_binary in.pcd out.pcd 1)",
-        )
-    if fmt not in ("ascii", "binary"):
+    if fmt not in ("ascii", "binary", "binary_compressed"):
         raise InputError(path, f"unknown PCD DATA format '{fmt}'")
+    try:
+        # Field names may repeat (PCL pads with "_"), so the record uses positional names.
+        dtype = np.dtype(
+            [
+                (f"f{k}", f"<{_PCD_TYPES[t.upper()]}{s}", (c,))
+                for k, (t, s, c) in enumerate(zip(types, sizes, counts, strict=True))
+            ]
+        )
+    except (KeyError, TypeError):
+        raise InputError(path, f"unsupported PCD TYPE/SIZE {types}/{sizes}") from None
+    return names, dtype, n, fmt, data_start
+
+
+def _read_pcd(path: PathLike) -> dict[str, np.ndarray]:
+    raw = read_bytes(path)
+    names, dtype, n, fmt, data_start = _pcd_header(path, raw)
     columns: dict[str, np.ndarray] = {}
     if fmt == "binary":
-        try:
-            # Field names may repeat (PCL pads with "_"), so the record uses positional names.
-            dtype = np.dtype(
-                [
-                    (f"f{k}", f"<{_PCD_TYPES[t.upper()]}{s}", (c,))
-                    for k, (t, s, c) in enumerate(zip(types, sizes, counts, strict=True))
-                ]
-            )
-        except (KeyError, TypeError):
-            raise InputError(path, f"unsupported PCD TYPE/SIZE {types}/{sizes}") from None
         table = _binary_table(path, raw, data_start, dtype, n)
         for k, name in enumerate(names):
             columns.setdefault(name, table[f"f{k}"][:, 0])
+    elif fmt == "binary_compressed":
+        data = _pcd_decompress(path, raw, data_start, n * dtype.itemsize)
+        # PCL stores each field's values together (all x, then all y, ...).
+        offset = 0
+        for k, name in enumerate(names):
+            field = dtype[f"f{k}"]
+            values = np.frombuffer(data, field.base, count=n * field.shape[0], offset=offset)
+            offset += n * field.itemsize
+            columns.setdefault(name, values.reshape(n, -1)[:, 0])
     else:
+        counts = [dtype[f"f{k}"].shape[0] for k in range(len(names))]
         table = _ascii_table(path, raw, data_start, 0, n, sum(counts))
         starts = np.cumsum([0] + counts[:-1])
         for name, start in zip(names, starts, strict=True):
             columns.setdefault(name, table[:, start])
-    return _assemble(path, columns, n)
+    return columns
+
+
+def _pcd_decompress(path: PathLike, raw: bytes, start: int, expected: int) -> bytes:
+    """The data of a binary_compressed PCD: two uint32 sizes (compressed, uncompressed), then
+    the LZF stream."""
+    if len(raw) < start + 8:
+        raise InputError(path, "truncated: binary_compressed PCD without its size words")
+    packed, unpacked = np.frombuffer(raw, "<u4", count=2, offset=start).tolist()
+    if unpacked != expected:
+        raise InputError(
+            path,
+            f"compressed data unpacks to {unpacked} bytes, the header's points need {expected}",
+        )
+    if len(raw) < start + 8 + packed:
+        raise InputError(
+            path, f"truncated: {packed} bytes of compressed data, found {len(raw) - start - 8}"
+        )
+    return lzf_decompress(raw[start + 8 : start + 8 + packed], unpacked, path)
+
+
+def lzf_decompress(data: bytes, size: int, path: PathLike | None = None) -> bytes:
+    """Decompress an LZF stream (liblzf's format, as PCL writes it) of ``size`` bytes.
+
+    Each control byte ``c`` starts either a literal run (``c < 32``: the next ``c + 1`` bytes)
+    or a back reference (length ``(c >> 5) + 2``, plus a byte when ``c >> 5`` is 7; offset
+    ``((c & 31) << 8) + next byte + 1`` back from the end of the output).
+    """
+    out = bytearray()
+    i, n = 0, len(data)
+    try:
+        while i < n:
+            c = data[i]
+            i += 1
+            if c < 32:
+                out += data[i : i + c + 1]
+                i += c + 1
+                continue
+            length = c >> 5
+            if length == 7:
+                length += data[i]
+                i += 1
+            ref = len(out) - ((c & 31) << 8) - data[i] - 1
+            i += 1
+            length += 2
+            if ref < 0:
+                raise IndexError
+            if ref + length <= len(out):
+                out += out[ref : ref + length]
+            else:  # the copy overlaps what it writes: repeat the pattern
+                for k in range(length):
+                    out.append(out[ref + k])
+    except IndexError:
+        raise InputError(
+            path, "corrupt LZF data (a reference before the start or past the end)"
+        ) from None
+    if len(out) != size:
+        raise InputError(path, f"corrupt LZF data: {len(out)} bytes unpacked, expected {size}")
+    return bytes(out)
+
+
+def lzf_compress(data: bytes) -> bytes:
+    """Compress ``data`` into liblzf's format (greedy, 3-byte hash matches; for writing test
+    files and small scans, not speed)."""
+    out = bytearray()
+    literal = bytearray()
+    table: dict[bytes, int] = {}
+    i, n = 0, len(data)
+
+    def flush() -> None:
+        for k in range(0, len(literal), 32):
+            chunk = literal[k : k + 32]
+            out.append(len(chunk) - 1)
+            out.extend(chunk)
+        literal.clear()
+
+    while i < n:
+        key = data[i : i + 3]
+        ref = table.get(key) if len(key) == 3 else None
+        table[key] = i
+        if ref is not None and i - ref - 1 < 8192:
+            length = 3
+            limit = min(n - i, 264)
+            while length < limit and data[ref + length] == data[i + length]:
+                length += 1
+            flush()
+            offset = i - ref - 1
+            code = length - 2
+            if code < 7:
+                out.append((code << 5) | (offset >> 8))
+            else:
+                out.append((7 << 5) | (offset >> 8))
+                out.append(code - 7)
+            out.append(offset & 255)
+            i += length
+        else:
+            literal.append(data[i])
+            i += 1
+    flush()
+    return bytes(out)
+
+
+def write_scan_pcd(path: PathLike, points: np.ndarray, data: str = "binary",
+                   times: np.ndarray | None = None) -> None:  # fmt: skip
+    """Write ``(N, 4)`` float32 points (and optional float64 per-point ``times``, field ``t``)
+    as a PCD v0.7 file, ``data`` ``binary``, ``binary_compressed`` or ``ascii``."""
+    points = np.asarray(points, dtype=np.float32)
+    if points.ndim != 2 or points.shape[1] != 4:
+        raise InputError(path, f"points must have shape (N, 4), got {points.shape}")
+    n = len(points)
+    fields = [("x", "F", 4), ("y", "F", 4), ("z", "F", 4), ("intensity", "F", 4)]
+    columns = [points[:, k] for k in range(4)]
+    if times is not None:
+        fields.append(("t", "F", 8))
+        columns.append(np.asarray(times, np.float64))
+    header = (
+        "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\n"
+        f"FIELDS {' '.join(f[0] for f in fields)}\nSIZE {' '.join(str(f[2]) for f in fields)}\n"
+        f"TYPE {' '.join(f[1] for f in fields)}\nCOUNT {' '.join('1' for _ in fields)}\n"
+        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\nDATA {data}\n"
+    ).encode("ascii")
+    if data == "ascii":
+        body = "".join(
+            " ".join(repr(float(v)) for v in row) + "\n" for row in zip(*columns, strict=True)
+        )
+        payload = body.encode("ascii")
+    elif data == "binary":
+        dtype = np.dtype([(f[0], f"<f{f[2]}") for f in fields])
+        record = np.empty(n, dtype)
+        for (name, _, _), column in zip(fields, columns, strict=True):
+            record[name] = column
+        payload = record.tobytes()
+    elif data == "binary_compressed":
+        raw = b"".join(np.ascontiguousarray(c, f"<f{f[2]}").tobytes()
+                       for f, c in zip(fields, columns, strict=True))  # fmt: skip
+        packed = lzf_compress(raw)
+        payload = np.array([len(packed), len(raw)], "<u4").tobytes() + packed
+    else:
+        raise InputError(path, f"unknown PCD DATA format '{data}'")
+    write_atomic(path, header + payload)
 
 
 _PLY_TYPES = {
@@ -190,7 +452,7 @@ _PLY_TYPES = {
 _PLY_ENDIAN = {"binary_little_endian": "<", "binary_big_endian": ">"}
 
 
-def _read_ply(path: PathLike) -> np.ndarray:
+def _read_ply(path: PathLike) -> dict[str, np.ndarray]:
     raw = read_bytes(path)
     if not raw.startswith(b"ply"):
         raise InputError(path, "not a PLY file (no 'ply' magic line)")
@@ -235,10 +497,10 @@ def _read_ply(path: PathLike) -> np.ndarray:
         record = _binary_table(path, raw, data_start + skip, dtype, n)
         for k, (name, _) in enumerate(props):
             columns.setdefault(name, record[f"f{k}"])
-    return _assemble(path, columns, n)
+    return columns
 
 
-def _read_npy(path: PathLike) -> np.ndarray:
+def _read_npy(path: PathLike) -> dict[str, np.ndarray]:
     array = load_npy(path)
     if array.ndim != 2 or array.shape[1] < 3 or array.dtype.kind not in "fiu":
         raise InputError(
@@ -246,6 +508,4 @@ def _read_npy(path: PathLike) -> np.ndarray:
             f"expected a numeric (N, 3) or (N, 4+) array, got shape {array.shape} "
             f"dtype {array.dtype}",
         )
-    if array.shape[1] == 3:
-        return np.column_stack([array, np.zeros(len(array))]).astype(np.float32)
-    return array[:, :4].astype(np.float32)
+    return dict(zip(("x", "y", "z", "intensity"), array[:, :4].T, strict=False))
