@@ -5,15 +5,26 @@ The steps, in order: drop NaN / inf points and crop to a range band, carry per-p
 thin evenly to a frozen padded size, and deskew the voxel centres to the scan's reference
 time with a constant velocity.
 
-Times are seconds from the scan's reference time (KITTI: mid-sweep, when the camera
-triggers); the velocity is the se(3) motion per frame interval, in
+Deskew policy (``PreprocessConfig.deskew``): ``timestamps`` uses the scan's per-point times,
+``azimuth`` derives them from each point's azimuth (a spinning sensor, KITTI's HDL-64E),
+``off`` leaves the scan as it is. ``auto`` is resolved by the data: per-point times when the
+scans have them, azimuth times for the KITTI layout (its raw scans are motion-distorted), off
+otherwise (:func:`resolve_deskew`); given to :func:`preprocess_scan` directly, ``auto`` uses
+the times when given and the azimuth otherwise.
+
+Per-point times may come in any common convention (seconds from the sweep's start or from
+mid-sweep, a [0, 1] fraction, absolute seconds or nanoseconds): as KISS-ICP does, they are
+normalised by their span onto one sweep (:func:`normalise_times`), and the convention found is
+reported. Internally, times are seconds from the scan's reference time (mid-sweep, when KITTI's
+camera triggers); the velocity is the se(3) motion per frame interval, in
 :mod:`gloam_jax.geometry`'s tangent order (rho, phi).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar, Literal
+from typing import TYPE_CHECKING, ClassVar, Literal, get_args
 
 import jax
 import jax.numpy as jnp
@@ -27,25 +38,148 @@ if TYPE_CHECKING:
     from gloam_jax.features.pca import FeaturePCA
 
 
+DeskewPolicy = Literal["auto", "timestamps", "azimuth", "off"]
+DESKEW_POLICIES: tuple[str, ...] = get_args(DeskewPolicy)
+
+
+def _number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
 @dataclass(frozen=True)
 class PreprocessConfig:
     """How a raw scan becomes registration input (the odometry's and the training's)."""
 
-    min_range: float = 3.0  # m; closer returns hit the vehicle itself
-    max_range: float = 100.0  # m
-    downsampling_resolution: float = 0.5  # m, voxel size of each scan
-    num_neighbors: int = 10  # k of the k-NN covariances (small_gicp's default)
+    min_range: float = 3.0  # m; closer returns (the vehicle itself) are dropped; 0 keeps all
+    max_range: float = 100.0  # m; farther returns are dropped; above min_range
+    # m, voxel size of each scan (one point per voxel, their mean); 0 turns downsampling off
+    downsampling_resolution: float = 0.5
+    num_neighbors: int = 10  # k of the k-NN covariances (small_gicp's default), at least 3
     # plain GICP's eigenvalues (1, 1, eps) or the raw ones floored at eps; methods with learned
     # covariances replace it by Algorithm 1
     regularizer: Literal["plane", "raw_eps"] = "plane"
-    deskew: bool = True  # undo motion distortion with the current velocity
-    sweep_duration: float = 0.1  # s, for azimuth times when scans carry no per-point times
+    # undo motion distortion with the current velocity: auto (by the data), timestamps (the
+    # scans' per-point times), azimuth (times from each point's azimuth) or off; true and false
+    # from older files are read as auto and off
+    deskew: DeskewPolicy | bool = "auto"
+    # s, one sweep: per-point times are normalised onto it, and azimuth times span it
+    sweep_duration: float = 0.1
 
     # Settings that change the prepared scans themselves (not how they are registered).
     SCAN_FIELDS: ClassVar[tuple[str, ...]] = (
         "min_range", "max_range", "downsampling_resolution", "num_neighbors", "deskew",
         "sweep_duration",
     )  # fmt: skip
+
+    def __post_init__(self) -> None:
+        def fail(name: str, rule: str) -> None:
+            raise InputError(None, f"preprocess.{name} must be {rule}, not {getattr(self, name)!r}")
+
+        if isinstance(self.deskew, bool):  # settings files written before the policies
+            object.__setattr__(self, "deskew", "auto" if self.deskew else "off")
+        if self.deskew not in DESKEW_POLICIES:
+            fail("deskew", f"one of {list(DESKEW_POLICIES)}")
+        if not (_number(self.min_range) and self.min_range >= 0):
+            fail("min_range", "a number >= 0")
+        if not (_number(self.max_range) and self.max_range > 0):
+            fail("max_range", "positive")
+        if self.min_range >= self.max_range:
+            raise InputError(
+                None,
+                f"preprocess.min_range ({self.min_range}) must be below preprocess.max_range "
+                f"({self.max_range}): no point would be kept",
+            )
+        if not (_number(self.downsampling_resolution) and self.downsampling_resolution >= 0):
+            fail("downsampling_resolution", "a voxel size > 0 (m), or 0 for no downsampling")
+        n = self.num_neighbors
+        if not (isinstance(n, int) and not isinstance(n, bool) and n >= 3):
+            fail("num_neighbors", "an integer >= 3")
+        if not (_number(self.sweep_duration) and self.sweep_duration > 0):
+            fail("sweep_duration", "positive")
+
+
+# Time units a per-point time column may come in, by how many of them make a second.
+_UNITS = (("s", 1.0), ("ms", 1e3), ("us", 1e6), ("ns", 1e9))
+
+
+def detect_time_convention(times: np.ndarray, sweep_duration: float, source=None) -> str:
+    """Which convention per-point times follow, from their range: ``fraction [0, 1]``,
+    ``s from start``, ``s from mid-sweep``, ``s before end``, ``absolute s``, and the same with
+    ``ms``, ``us`` or ``ns``. The span must be one sweep (a quarter to four times
+    ``sweep_duration``) in some unit, or [0, 1]; anything else is an InputError."""
+    t = np.asarray(times)
+    if t.size == 0:
+        raise InputError(source, "no per-point times")
+    if t.dtype.kind not in "fiu":
+        raise InputError(source, f"per-point times are not numbers (dtype {t.dtype})")
+    lo, hi = t.min(), t.max()
+    if not (np.isfinite(lo) and np.isfinite(hi)):
+        raise InputError(source, "per-point times contain NaN or infinite values")
+    span = float(hi - lo)  # before float conversion: int64 nanoseconds stay exact
+    lo, hi = float(lo), float(hi)
+    if lo >= -1e-6 and hi <= 1 + 1e-6 and span >= 0.5:
+        return "fraction [0, 1]"
+    for unit, per_second in _UNITS:
+        if 0.25 <= span / per_second / sweep_duration <= 4:
+            tol = 0.05 * span
+            if abs(lo) <= tol:
+                where = "from start"
+            elif abs(hi) <= tol:
+                where = "before end"
+            elif abs(lo + hi) <= 2 * tol:
+                where = "from mid-sweep"
+            elif lo > 1e6 * per_second:  # after 1970-01-12: a clock, not an offset
+                return f"absolute {unit}"
+            else:
+                where = "with an offset"
+            return f"{unit} {where}"
+    raise InputError(
+        source,
+        f"per-point times span {span:g} (from {lo:g} to {hi:g}), which fits no convention: "
+        f"a [0, 1] fraction, or one sweep of {sweep_duration} s (preprocess.sweep_duration) "
+        "in s, ms, us or ns",
+    )
+
+
+def normalise_times(
+    times: np.ndarray, sweep_duration: float, source=None
+) -> tuple[np.ndarray, str]:
+    """Per-point times in any convention -> (seconds from mid-sweep (N,) float64, convention).
+
+    As KISS-ICP does, the times are mapped by their span onto one sweep: the earliest point
+    at ``-sweep_duration / 2``, the latest at ``+sweep_duration / 2``, whatever their unit or
+    origin (see :func:`detect_time_convention`).
+    """
+    convention = detect_time_convention(times, sweep_duration, source)
+    t = np.asarray(times)
+    offset = t - t.min()  # in the stored type first: int64 nanoseconds stay exact
+    fraction = offset.astype(np.float64) / float(offset.max())
+    return (fraction - 0.5) * sweep_duration, convention
+
+
+def resolve_deskew(policy: str, has_times: bool, distorted_layout: bool) -> tuple[str, str]:
+    """The concrete policy (``timestamps``, ``azimuth`` or ``off``) for data with or without
+    per-point times, from a layout known to be motion-distorted (KITTI) or not, and why.
+    ``timestamps`` without times is an InputError."""
+    if policy == "timestamps" and not has_times:
+        raise InputError(
+            None,
+            "preprocess.deskew is 'timestamps' but the scans have no per-point times "
+            "(use auto, azimuth or off)",
+        )
+    if policy != "auto":
+        return policy, f"deskew: {policy} (as configured)"
+    if has_times:
+        return "timestamps", "deskew: auto -> timestamps (the scans carry per-point times)"
+    if distorted_layout:
+        return "azimuth", (
+            "deskew: auto -> azimuth (KITTI layout without per-point times: raw scans are "
+            "motion-distorted, times taken from each point's azimuth)"
+        )
+    return "off", (
+        "deskew: auto -> off (no per-point times and not the KITTI layout; set "
+        "preprocess.deskew: azimuth to deskew a spinning sensor's scans)"
+    )
 
 
 def azimuth_times(points: np.ndarray, sweep_duration: float) -> np.ndarray:
@@ -99,7 +233,9 @@ def preprocess_scan(
     given (from the backbone's ``features`` (N, D)), the number of NaN / inf points dropped
     and the number of voxel centres thinned out.
 
-    ``times`` (N,) s from the reference time, or None for times from the azimuth. ``buckets``
+    ``times`` (N,) per-point times in any convention (normalised by :func:`normalise_times`),
+    or None; ``config.deskew`` says whether they, the azimuth or nothing deskews (``auto``:
+    the times when given, else the azimuth; see :func:`resolve_deskew`). ``buckets``
     size the deskew's padding (role "scan"); once frozen, centres beyond their limit are
     thinned evenly along the voxel order (so evenly in space). Raises InputError for scans
     without points in range and for features of the wrong shape.
@@ -108,7 +244,19 @@ def preprocess_scan(
     points = scan[keep, :3].astype(np.float64)
     if len(points) == 0:
         raise InputError(source, f"no points between {config.min_range} and {config.max_range} m")
-    t = times[keep] if times is not None else azimuth_times(points, config.sweep_duration)
+    policy = config.deskew
+    if policy == "auto":
+        policy = "timestamps" if times is not None else "azimuth"
+    if policy == "timestamps":
+        if times is None:
+            raise InputError(source, "preprocess.deskew is 'timestamps' but no per-point times")
+        if len(times) != len(scan):
+            raise InputError(source, f"{len(times)} per-point times for {len(scan)} points")
+        t = normalise_times(times, config.sweep_duration, source)[0][keep]
+    elif policy == "azimuth":
+        t = azimuth_times(points, config.sweep_duration)
+    else:
+        t = np.zeros(len(points))
     columns = [np.column_stack([points, t])]
     if pca is not None:
         if features is None or len(features) != len(scan):
@@ -133,7 +281,7 @@ def preprocess_scan(
         columns = [c[rows] for c in columns]
     reduced, pca_features = columns[0], (columns[1] if pca is not None else None)
     points = reduced[:, :3]
-    if config.deskew and velocity is not None:
+    if policy != "off" and velocity is not None:
         size = None if buckets is None else buckets("scan", len(points))
         points = deskew(points, reduced[:, 3], velocity, frame_dt, size)
     return points, pca_features, dropped, thinned
