@@ -1,17 +1,25 @@
-"""Dataset -> odometry -> metrics -> result files, for one KITTI-layout sequence.
+"""Dataset -> odometry -> metrics -> result files, for one sequence of scans.
 
-A run folder holds (``NN`` the sequence id)::
+The data comes from any registered loader (:mod:`gloam_jax.datasets`: the KITTI layout, a
+folder of scans). A run folder holds (``NN`` the dataset's name: the KITTI sequence id or the
+folder's name)::
 
-    NN_poses_kitti.txt        estimate, camera-0 convention (compare with poses/NN.txt)
+    NN_poses_kitti.txt        estimate, ground-truth convention (camera 0 with a calibration,
+                              else the LiDAR frame); compare with the ground truth
     NN_poses_lidar_kitti.txt  estimate, LiDAR frame (T_world_lidar, first pose identity)
-    NN_poses_tum.txt          estimate, camera-0 convention, with the frame times
-    metrics.json              KITTI RTE and ATE (when ground truth exists), timing, frame flags
-    trajectory.png            estimate against ground truth, and error per segment length
+    NN_poses_tum.txt          estimate as NN_poses_kitti.txt, with the frame times
+    NN_gt_kitti.txt           ground truth of the frames run, when it exists (evo_ape kitti)
+    NN_gt_tum.txt             the same with the frame times (evo_ape tum)
+    metrics.json              KITTI RTE and ATE (when ground truth exists), timing, frame
+                              flags, the deskew policy and time convention, the defaults taken
+    trajectory.png            the trajectory (against the ground truth, with the error per
+                              segment length when the devkit's segments fit)
     config.yaml               the settings used
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable
@@ -22,14 +30,26 @@ import numpy as np
 
 from gloam_jax import io, metrics
 from gloam_jax.config import dump_config
+from gloam_jax.datasets import Dataset, open_dataset
 from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone, get_backbone
 from gloam_jax.odometry import Odometry, OdometryConfig
+from gloam_jax.preprocess import detect_time_convention, resolve_deskew
+
+
+def select_frames(n: int, start: int = 0, frames: int | None = None, stride: int = 1) -> range:
+    """Frame indices ``start, start + stride, ...``: at most ``frames`` of the ``n`` scans."""
+    if start < 0 or stride < 1 or (frames is not None and frames < 1):
+        raise InputError(None, f"bad frame selection start={start} frames={frames} stride={stride}")
+    if start >= n:
+        raise InputError(None, f"--start {start} is past the last of the {n} scans")
+    chosen = range(start, n, stride)
+    return chosen if frames is None else chosen[:frames]
 
 
 def run_sequence(
     root: str | Path,
-    sequence: str | int,
+    sequence: str | int | None,
     config: OdometryConfig,
     out_dir: str | Path,
     *,
@@ -37,25 +57,74 @@ def run_sequence(
     progress: Callable[[int, float], None] | None = None,
     features_dir: str | Path | None = None,
 ) -> dict:
-    """Run odometry over a sequence and write the run folder; returns the metrics dict.
+    """:func:`run_dataset` on the data at ``root`` (a KITTI root with ``sequence``, or a
+    folder of scans), its first ``frames`` scans."""
+    dataset = open_dataset(root, None if sequence is None else str(sequence))
+    chosen = select_frames(len(dataset), 0, frames)
+    return run_dataset(
+        dataset, config, out_dir, chosen, progress=progress, features_dir=features_dir
+    )
 
-    Learned methods get per-point features from the model's backbone, or from one file per
-    scan in ``features_dir`` (the ``precomputed`` backbone). The time per frame counts
-    registration only; feature extraction is timed separately (``median_ms_features``).
+
+def plan_deskew(
+    dataset: Dataset, config: OdometryConfig, first: int
+) -> tuple[OdometryConfig, dict]:
+    """The settings with ``preprocess.deskew`` resolved for this data (``auto`` -> one
+    policy), and a record of it: the policy asked for and used, why, and the per-point time
+    convention found in frame ``first`` (checked again on every frame)."""
+    prep = config.preprocess
+    used, why = resolve_deskew(prep.deskew, dataset.has_point_times, dataset.distorted)
+    record = {"policy": prep.deskew, "used": used, "reason": why, "time_convention": None}
+    if used == "timestamps":
+        _, times = dataset.frame(first)
+        if times is None:
+            raise InputError(dataset.scan_path(first), "has no per-point times, unlike the others")
+        source = dataset.scan_path(first)
+        record["time_convention"] = detect_time_convention(times, prep.sweep_duration, source)
+        record["reason"] += f"; per-point times in {record['time_convention']}"
+    resolved = dataclasses.replace(config, preprocess=dataclasses.replace(prep, deskew=used))
+    return resolved, record
+
+
+def run_dataset(
+    dataset: Dataset,
+    config: OdometryConfig,
+    out_dir: str | Path,
+    frames: range,
+    *,
+    progress: Callable[[int, float], None] | None = None,
+    features_dir: str | Path | None = None,
+) -> dict:
+    """Run odometry over ``frames`` of ``dataset`` and write the run folder; returns the
+    metrics dict.
+
+    Every scan of ``frames`` is checked (sizes, headers) before the first is registered.
+    ``auto`` deskewing is resolved by the data (:func:`plan_deskew`). Learned methods get
+    per-point features from the model's backbone, or from one file per scan in
+    ``features_dir`` (the ``precomputed`` backbone). ``progress(k, ms)`` after the k-th frame.
+    The time per frame counts registration only; feature extraction is timed separately
+    (``median_ms_features``).
     """
-    seq = io.KittiSequence(root, sequence)
-    n = len(seq) if frames is None else min(frames, len(seq))
+    n = len(frames)
     if n < 2:
-        raise InputError(seq.sequence_dir, f"need at least 2 scans, have {n}")
-    odometry = Odometry(config)
+        raise InputError(
+            dataset.scan_path(frames[0]) if n else None, f"need at least 2 scans, have {n}"
+        )
+    dataset.check(frames)
+    resolved, deskew = plan_deskew(dataset, config, frames[0])
+    odometry = Odometry(resolved)
     backbone = _backbone(odometry, features_dir)
-    times = seq.times
+    times = dataset.times
     frame_ms, feature_ms = [], []
-    for i in range(n):
-        scan = seq.scan(i)
-        point_times = seq.point_times(i)
-        frame_dt = float(times[i] - times[i - 1]) if i > 0 else config.preprocess.sweep_duration
-        path = seq.scan_path(i)
+    for k, i in enumerate(frames):
+        scan, point_times = dataset.frame(i)
+        if deskew["used"] != "timestamps":
+            point_times = None
+        prev = frames[k - 1] if k > 0 else None
+        frame_dt = (
+            float(times[i] - times[prev]) if prev is not None else config.preprocess.sweep_duration
+        )
+        path = dataset.scan_path(i)
         features = None
         if backbone is not None:
             t0 = time.perf_counter()
@@ -65,12 +134,12 @@ def run_sequence(
         odometry.register_frame(scan, point_times, frame_dt, source=str(path), features=features)
         frame_ms.append(1e3 * (time.perf_counter() - t0))
         if progress is not None:
-            progress(i, frame_ms[-1])
-    result = write_run(seq, odometry, config, out_dir, n, frame_ms)
+            progress(k, frame_ms[-1])
+    extra = {"deskew": deskew, "defaults": list(dataset.defaults), "dataset": dataset.kind,
+             "frames": {"start": frames.start, "stride": frames.step, "count": n}}  # fmt: skip
     if feature_ms:
-        result["median_ms_features"] = float(np.median(feature_ms))
-        io.write_atomic(Path(out_dir) / "metrics.json", json.dumps(result, indent=2))
-    return result
+        extra["median_ms_features"] = float(np.median(feature_ms))
+    return write_run(dataset, odometry, config, out_dir, frames, frame_ms, extra)
 
 
 def _backbone(odometry: Odometry, features_dir: str | Path | None) -> Backbone | None:
@@ -82,15 +151,17 @@ def _backbone(odometry: Odometry, features_dir: str | Path | None) -> Backbone |
     return odometry.model.backbone()
 
 
-def write_run(seq: io.KittiSequence, odometry: Odometry, config: OdometryConfig,
-              out_dir: str | Path, n: int, frame_ms: list[float]) -> dict:  # fmt: skip
+def write_run(dataset: Dataset, odometry: Odometry, config: OdometryConfig, out_dir: str | Path,
+              frames: range, frame_ms: list[float], extra: dict) -> dict:  # fmt: skip
     out = Path(out_dir)
-    name = seq.sequence
+    name, n = dataset.name, len(frames)
+    index = np.asarray(frames)
     T_lidar = np.stack(odometry.poses)
-    T_cam = io.lidar_to_cam_poses(T_lidar, seq.Tr_cam_velo)
+    T_cam = io.lidar_to_cam_poses(T_lidar, dataset.Tr_cam_velo)
+    stamps = dataset.times[index]
     io.write_kitti_poses(out / f"{name}_poses_kitti.txt", T_cam)
     io.write_kitti_poses(out / f"{name}_poses_lidar_kitti.txt", T_lidar)
-    io.write_tum_poses(out / f"{name}_poses_tum.txt", seq.times[:n], T_cam)
+    io.write_tum_poses(out / f"{name}_poses_tum.txt", stamps, T_cam)
     dump_config(config, out / "config.yaml")
     flags = [asdict(s) for s in odometry.status]
     result: dict = {
@@ -98,22 +169,56 @@ def write_run(seq: io.KittiSequence, odometry: Odometry, config: OdometryConfig,
         "num_frames": n,
         "median_ms_per_frame": float(np.median(frame_ms[1:] if n > 2 else frame_ms)),
         "mean_ms_per_frame": float(np.mean(frame_ms)),
+        # compilation included: what JAX's persistent cache shortens on a second run
+        "first_frames_ms": [float(ms) for ms in frame_ms[:3]],
         "degenerate_frames": [i for i, s in enumerate(flags) if s["degenerate"]],
         "bad_input_frames": {i: s["error"] for i, s in enumerate(flags) if s["error"]},
         "dropped_invalid_points": int(sum(s["num_dropped"] for s in flags)),
         "thinned_points": int(sum(s["num_thinned"] for s in flags)),
+        **extra,
     }
-    gt = seq.gt_poses_cam
+    gt = dataset.gt_poses_cam
+    plot = out / "trajectory.png"
     if gt is not None:
-        gt = gt[:n]
+        # The ground truth of the frames run, relative to the first, as the estimate is.
+        gt = np.linalg.inv(gt[index[0]]) @ gt[index]
+        io.write_kitti_poses(out / f"{name}_gt_kitti.txt", gt)
+        io.write_tum_poses(out / f"{name}_gt_tum.txt", stamps, gt)
         try:
             result.update(metrics.evaluate(gt, T_cam))
-            metrics.plot_evaluation(
-                gt, T_cam, None, out / "trajectory.png", title=f"sequence {name}"
-            )
+            metrics.plot_evaluation(gt, T_cam, None, plot, title=f"sequence {name}")
         except InputError as err:  # too short for the devkit's segments: ATE only
             result["rte_unavailable"] = err.problem
             result["ate"] = metrics.ate(gt, T_cam).to_dict()
+            plot_trajectory(T_cam, gt, plot, f"{name}: RTE unavailable ({err.problem})")
+    else:
+        plot_trajectory(T_cam, None, plot, f"{name} (no ground truth)")
     io.write_atomic(out / "frames.json", json.dumps(flags))
     io.write_atomic(out / "metrics.json", json.dumps(result, indent=2))
     return result
+
+
+def plot_trajectory(est: np.ndarray, gt: np.ndarray | None, path: Path, title: str) -> Path:
+    """The trajectory panel alone: the estimate (and ground truth) seen along the axis of
+    least extent (top-down for a vehicle)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    p_est = est[:, :3, 3]
+    p_all = p_est if gt is None else np.concatenate([p_est, gt[:, :3, 3]])
+    extent = p_all.max(axis=0) - p_all.min(axis=0)
+    a, b = sorted(np.argsort(-extent, kind="stable")[:2].tolist())
+    fig = Figure(figsize=(7.0, 6.0), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    if gt is not None:
+        ax.plot(gt[:, a, 3], gt[:, b, 3], color="tab:red", lw=1.2, label="ground truth")
+    ax.plot(p_est[:, a], p_est[:, b], color="tab:blue", lw=1.2, label="estimate")
+    ax.plot(p_est[0, a], p_est[0, b], "ks", ms=6, mfc="none", label="start")
+    ax.set_xlabel(f"{'xyz'[a]} [m]")
+    ax.set_ylabel(f"{'xyz'[b]} [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best")
+    ax.set_title(title, fontsize=9)
+    return io.write_figure(path, fig, dpi=110)

@@ -14,9 +14,9 @@ from gloam_jax.cli import app
 from gloam_jax.config import dump_config, load_config
 from gloam_jax.errors import InputError
 from gloam_jax.gicp import GICPConfig
-from gloam_jax.odometry import Odometry, OdometryConfig, remap, weak_directions
+from gloam_jax.odometry import Odometry, OdometryConfig, remap
 from gloam_jax.preprocess import azimuth_times, deskew
-from gloam_jax.registration import align_prepared, prepare
+from gloam_jax.registration import align_prepared, conditioning, prepare
 
 
 def test_azimuth_times_match_the_simulated_timestamps(sim_sequence):
@@ -100,12 +100,13 @@ def test_degenerate_corridor_is_flagged_and_remapped():
     T_true[:3, 3] = [0.7, 0.3, 0.0]  # along the corridor (unseen) and across it (seen)
     source_points = corridor(1) - T_true[:3, 3]
     source = prepare(source_points[np.abs(source_points[:, 0]) < 90])
-    result = align_prepared(target, source, None, GICPConfig())
-    config = OdometryConfig()
-    weak = weak_directions(result.H, config.lever_arm, config.degeneracy_threshold)
+    config = GICPConfig()
+    result = align_prepared(target, source, None, config)
+    weak = result.weak_directions
+    assert result.degenerate and result.condition < config.degeneracy_threshold
     assert weak.shape[1] == 1 and abs(weak[0, 0]) > 0.99  # the corridor's axis, x
     strong = np.diag([1e5, 2e5, 3e5, 1e7, 2e7, 3e7])
-    assert weak_directions(strong, config.lever_arm, config.degeneracy_threshold).shape[1] == 0
+    assert conditioning(strong, config.lever_arm, config.degeneracy_threshold)[1].shape[1] == 0
     # Remapping keeps the registration across the corridor and the prior along it.
     prior = np.eye(4)
     prior[:3, 3] = [0.5, 0.0, 0.0]
@@ -210,6 +211,27 @@ def test_gloam_run_writes_the_run_folder(sim_sequence, tmp_path):
     assert "rte_unavailable" in metrics and metrics["ate"]["rmse"] < 0.2
     assert metrics["num_frames"] == 8 and metrics["median_ms_per_frame"] > 0
     assert load_config(run / "config.yaml") == OdometryConfig()
+    # The summary and metrics.json say how the scans were deskewed.
+    assert metrics["deskew"]["used"] == "timestamps"
+    assert metrics["deskew"]["time_convention"] == "s from mid-sweep"
+    assert "deskew: auto -> timestamps" in result.output and "frame 8/8 (100 %)" in result.output
+    assert (run / "trajectory.png").stat().st_size > 10_000  # the trajectory alone: RTE unavailable
+    # evo reads the ground truth and the estimate as they are written.
+    from evo.core import metrics as evo_metrics
+    from evo.core import sync
+    from evo.tools import file_interface
+
+    gt_kitti = file_interface.read_kitti_poses_file(str(run / "00_gt_kitti.txt"))
+    est_kitti = file_interface.read_kitti_poses_file(str(run / "00_poses_kitti.txt"))
+    np.testing.assert_allclose(gt_kitti.poses_se3, seq.gt_poses_cam[:8], atol=1e-6)
+    ape = evo_metrics.APE(evo_metrics.PoseRelation.translation_part)
+    ape.process_data((gt_kitti, est_kitti))
+    assert ape.get_statistic(evo_metrics.StatisticsType.rmse) < 0.5
+    gt_tum = file_interface.read_tum_trajectory_file(str(run / "00_gt_tum.txt"))
+    est_tum_evo = file_interface.read_tum_trajectory_file(str(run / "00_poses_tum.txt"))
+    gt_tum, est_tum_evo = sync.associate_trajectories(gt_tum, est_tum_evo)
+    assert gt_tum.num_poses == 8
+    np.testing.assert_allclose(gt_tum.timestamps, seq.times[:8], atol=1e-6)
     # Bad input: one line naming the path, and no run folder left behind.
     out = tmp_path / "failed"
     missing = CliRunner().invoke(app, ["run", str(tmp_path / "nowhere"), "--out", str(out)])

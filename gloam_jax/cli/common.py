@@ -12,6 +12,8 @@ import itertools
 import json
 import os
 import shutil
+import sys
+import time
 from collections.abc import Callable, Iterator
 from datetime import datetime
 from pathlib import Path
@@ -76,6 +78,71 @@ def progress_bar() -> Progress:
         console=console,
         transient=False,
     )
+
+
+@contextlib.contextmanager
+def frame_progress(description: str, total: int, every: int | None = None) -> Iterator[Callable]:
+    """A progress callback ``(k, ms)`` for ``total`` frames: rich's bar on a terminal; plain
+    lines otherwise (nohup, SLURM, CI logs), every ``every`` frames (default: a tenth of the
+    run, at most 100) and at the end, with frames/s and the time left."""
+    if console.is_terminal:
+        with progress_bar() as bar:
+            task = bar.add_task(description, total=total, rate="")
+
+            def step(k: int, ms: float) -> None:
+                bar.update(task, completed=k + 1, rate=f"{ms:.0f} ms/frame")
+
+            yield step
+        return
+    every = every or max(1, min(100, total // 10))
+    start = time.perf_counter()
+
+    def line(k: int, ms: float) -> None:
+        done = k + 1
+        if done % every and done != total:
+            return
+        elapsed = time.perf_counter() - start
+        rate = done / elapsed if elapsed > 0 else float("inf")
+        eta = (total - done) / rate if rate > 0 else 0.0
+        print(
+            f"{description}: frame {done}/{total} ({100 * done / total:.0f} %), "
+            f"{rate:.1f} frames/s, {ms:.0f} ms last frame, ETA {eta:.0f} s",
+            file=sys.stdout,
+            flush=True,
+        )
+
+    yield line
+
+
+COMPILATION_CACHE_ENV = "GLOAM_COMPILATION_CACHE"
+
+
+def use_compilation_cache(enabled: bool | None = None) -> Path | None:
+    """Turn on JAX's persistent compilation cache under ``cache_dir()/jax`` (so a second run
+    skips most of the first frames' compilation); returns the folder, or None when off.
+
+    ``enabled`` None follows the environment: ``GLOAM_COMPILATION_CACHE=0`` turns it off.
+    Compilations over 0.2 s are kept (JAX's default, 1 s, would skip most of this project's).
+    """
+    if enabled is None:
+        enabled = os.environ.get(COMPILATION_CACHE_ENV, "1").lower() not in (
+            "0",
+            "false",
+            "no",
+            "off",
+        )
+    if not enabled:
+        return None
+    import jax
+
+    folder = cache_dir() / "jax"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None  # an unwritable cache only costs speed
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    return folder
 
 
 class Tasks:
