@@ -101,3 +101,114 @@ def test_run_folder_refuses_a_real_latest_directory_and_an_unwritable_root(tmp_p
         run_folder(tmp_path / "file" / "results"),
     ):
         pass
+
+
+def test_eval_falls_back_to_ate_on_a_short_path(tmp_path):
+    gt = straight_line(30)  # 29 m: shorter than the devkit's 100 m segments
+    est = gt.copy()
+    est[:, 0, 3] += 0.1 * np.sin(np.arange(30))
+    io.write_kitti_poses(tmp_path / "gt.txt", gt)
+    io.write_kitti_poses(tmp_path / "est.txt", est)
+    args = ["--json", str(tmp_path / "m.json"), "--plot", str(tmp_path / "p.png")]
+    result = runner.invoke(
+        app, ["eval", str(tmp_path / "gt.txt"), str(tmp_path / "est.txt"), *args]
+    )
+    assert result.exit_code == 0, result.output
+    assert "RTE unavailable" in result.output and "ATE" in result.output
+    metrics = json.loads((tmp_path / "m.json").read_text())
+    assert "no segment fits" in metrics["rte_unavailable"]
+    assert 0.03 < metrics["ate"]["rmse"] < 0.1  # the 0.1 m sine, less what alignment absorbs
+    assert (tmp_path / "p.png").stat().st_size > 10_000
+
+
+def test_run_method_by_name_and_weights_it_cannot_take(tmp_path):
+    from gloam_jax.cli.run import method_settings
+    from gloam_jax.config import load_config
+    from gloam_jax.errors import InputError
+
+    assert method_settings(None, "gicp_ce", None) == load_config("gicp_ce")
+    assert method_settings(None, "gloam", tmp_path / "m.npz").model == str(tmp_path / "m.npz")
+    for args, message in [
+        (["--method", "gicp", "--weights", "model.npz"], "method 'gicp' learns nothing"),
+        (["--config", "gicp", "--weights", "model.npz"], "method 'gicp' learns nothing"),
+        (["--method", "gicp", "--config", "gloam"], "give --method or --config, not both"),
+        (["--method", "icp"], "unknown --method 'icp'"),
+    ]:
+        result = runner.invoke(app, ["run", str(tmp_path), *args, "--out", str(tmp_path / "r")])
+        assert result.exit_code == 2 and message in result.output, result.output
+        assert len(result.output.strip().splitlines()) == 1
+    with pytest.raises(InputError, match="learns nothing"):
+        method_settings(None, "gicp", tmp_path / "m.npz")
+
+
+@pytest.mark.parametrize("name", ["gloam", "gicp", "train_grad"])
+def test_config_dump_writes_commented_yaml_that_loads_back(tmp_path, name):
+    from gloam_jax.config import load_config
+    from gloam_jax.training.config import TrainConfig
+
+    cls = TrainConfig if name.startswith("train") else None
+    out = tmp_path / f"{name}.yaml"
+    result = runner.invoke(app, ["config", "dump", name, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    text = out.read_text()
+    assert "# m; closer returns" in text and "min_range: 3.0" in text
+    if cls is None:
+        assert load_config(out) == load_config(name)
+        assert "deskew: auto" in text
+    else:
+        assert load_config(out, cls) == load_config(name, cls)
+    printed = runner.invoke(app, ["config", "dump", name])
+    assert printed.exit_code == 0 and printed.output == text
+    missing = runner.invoke(app, ["config", "dump", "glom"])
+    assert missing.exit_code == 2 and "nor a shipped config" in missing.output
+
+
+def test_config_docs_are_current():
+    import runpy
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    script = runpy.run_path(str(root / "scripts" / "config_docs.py"))
+    page = (root / "docs" / "config.md").read_text()
+    assert page == script["render"](), "stale: python scripts/config_docs.py --write docs/config.md"
+    for name in ("preprocess.deskew", "gicp.max_correspondence_distance", "batch.gicp.adjoint",
+                 "tpe.n_trials", "grad.learning_rate", "keyframe_distance"):  # fmt: skip
+        assert f"| `{name}` |" in page
+
+
+def test_plain_progress_lines_when_not_a_terminal(capsys):
+    from gloam_jax.cli.common import console, frame_progress
+
+    assert not console.is_terminal  # pytest captures stdout
+    with frame_progress("gicp 00", 25, every=10) as step:
+        for k in range(25):
+            step(k, 12.0)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [line.split(",")[0] for line in lines] == [
+        "gicp 00: frame 10/25 (40 %)",
+        "gicp 00: frame 20/25 (80 %)",
+        "gicp 00: frame 25/25 (100 %)",
+    ]
+    assert all("frames/s" in line and "ETA" in line for line in lines)
+
+
+def test_compilation_cache_lives_in_the_user_cache_and_can_be_turned_off(tmp_path, monkeypatch):
+    import jax
+
+    from gloam_jax.cli.common import use_compilation_cache
+
+    before = (
+        jax.config.jax_compilation_cache_dir,
+        jax.config.jax_persistent_cache_min_compile_time_secs,
+    )
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    try:
+        monkeypatch.setenv("GLOAM_COMPILATION_CACHE", "0")
+        assert use_compilation_cache() is None and jax.config.jax_compilation_cache_dir == before[0]
+        monkeypatch.delenv("GLOAM_COMPILATION_CACHE")
+        folder = use_compilation_cache()
+        assert folder == tmp_path / "gloam-jax" / "jax" and folder.is_dir()
+        assert jax.config.jax_compilation_cache_dir == str(folder)
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before[0])
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])

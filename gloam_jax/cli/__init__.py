@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from gloam_jax.cli import run, simulate, train  # noqa: F401  (they register their commands)
+from gloam_jax.cli import config, run, simulate, train  # noqa: F401  (they register their commands)
 from gloam_jax.cli.common import app
 
 __all__ = ["app"]

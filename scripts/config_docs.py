@@ -1,0 +1,85 @@
+"""Write docs/config.md: every setting of the odometry and training files, with its type,
+default, unit and meaning, read from the settings dataclasses and their field comments
+(gloam_jax.cli.config.setting_rows), so the page cannot drift from the code.
+
+    python scripts/config_docs.py                     # print the page
+    python scripts/config_docs.py --write docs/config.md
+    python scripts/config_docs.py --check docs/config.md   # exit 1 when stale (a test runs it)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from gloam_jax.cli.config import setting_rows
+from gloam_jax.odometry import OdometryConfig
+from gloam_jax.training.config import TrainConfig
+
+INTRO = """# Settings
+
+Every setting of the odometry files (`gloam run --config`, `configs/gicp.yaml` ...) and the
+training files (`gloam train --config`, `configs/train_*.yaml`), generated from the settings
+dataclasses and the comments on their fields by `python scripts/config_docs.py --write
+docs/config.md` (a test fails when this page is stale). Nested sections are written
+`section.field` here and as nested mappings in YAML; a section left out keeps its defaults.
+`gloam config dump METHOD` writes one method's settings as commented YAML. A setting without
+a comment in the source has an empty meaning here: add one on its line.
+
+Bad values are errors naming the file and the setting (a range band that keeps no point,
+a negative voxel size, fewer than 3 neighbours, ...). `preprocess.downsampling_resolution: 0`
+turns downsampling off; `preprocess.min_range: 0` keeps the closest returns.
+
+**Deskew** (`preprocess.deskew`): `auto` uses per-point times when the scans carry them
+(`timestamps/NNNNNN.npy` in the KITTI layout, a `t`/`time`/`timestamp` field in PCD or PLY
+scans), the azimuth for the KITTI layout without them (raw KITTI scans are motion-distorted),
+and nothing otherwise; the run summary and `metrics.json` (`deskew`) say which was used and why.
+Per-point times may be seconds from the sweep's start, from mid-sweep or before its end, a
+[0, 1] fraction, or absolute seconds / nanoseconds (also ms, us): like KISS-ICP, they are
+mapped by their span onto one sweep of `preprocess.sweep_duration`, and the convention found
+is recorded (`deskew.time_convention`). A span that fits none is an error.
+"""
+
+SECTIONS = (
+    ("Odometry (`OdometryConfig`)", OdometryConfig),
+    ("Training (`TrainConfig`)", TrainConfig),
+)
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|").replace("\n", " ")
+
+
+def render() -> str:
+    parts = [INTRO]
+    for title, cls in SECTIONS:
+        parts.append(f"\n## {title}\n\n| setting | type | default | unit | meaning |\n")
+        parts.append("|---|---|---|---|---|\n")
+        for row in setting_rows(cls):
+            cells = [f"`{row['name']}`", f"`{row['type']}`", f"`{row['default']}`",
+                     row["unit"], row["meaning"]]  # fmt: skip
+            parts.append("| " + " | ".join(_cell(c) for c in cells) + " |\n")
+    return "".join(parts)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    group = parser.add_mutually_exclusive_group()
+    group.add_argument("--write", type=Path, help="write the page here")
+    group.add_argument("--check", type=Path, help="exit 1 if this page differs")
+    args = parser.parse_args()
+    page = render()
+    if args.write:
+        args.write.write_text(page)
+    elif args.check:
+        if not args.check.exists() or args.check.read_text() != page:
+            print(f"{args.check} is stale: python scripts/config_docs.py --write {args.check}")
+            return 1
+    else:
+        sys.stdout.write(page)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
