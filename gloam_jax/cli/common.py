@@ -122,7 +122,9 @@ def use_compilation_cache(enabled: bool | None = None) -> Path | None:
     skips most of the first frames' compilation); returns the folder, or None when off.
 
     ``enabled`` None follows the environment: ``GLOAM_COMPILATION_CACHE=0`` turns it off.
-    Compilations over 0.2 s are kept (JAX's default, 1 s, would skip most of this project's).
+    Every compilation is kept (JAX's default keeps only those over 1 s): measured on a
+    5-frame simulated run, a second run's first two frames took 0.6 + 2.3 s with all kept,
+    0.7 + 4.4 s with those over 0.2 s, 3.4 + 16.7 s without the cache; the folder held 336 KB.
     """
     if enabled is None:
         enabled = os.environ.get(COMPILATION_CACHE_ENV, "1").lower() not in (
@@ -141,7 +143,7 @@ def use_compilation_cache(enabled: bool | None = None) -> Path | None:
     except OSError:
         return None  # an unwritable cache only costs speed
     jax.config.update("jax_compilation_cache_dir", str(folder))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return folder
 
 
