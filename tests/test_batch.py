@@ -133,3 +133,89 @@ def _pca():
     from gloam_jax.features import fit_pca
 
     return fit_pca(np.random.default_rng(0).normal(size=(50, 20)))
+
+
+# --------------------------------------------------------------------------------------------
+# Gradient training's checkpoints (training.grad): damaged files and Ctrl-C.
+
+
+def test_damaged_checkpoint_is_a_one_line_input_error(tmp_path):
+    from gloam_jax.training.grad import load_checkpoint, save_checkpoint
+
+    trees = {"params": {"a": np.arange(5000.0, dtype=np.float32), "b": np.ones((3, 3))}}
+    path = tmp_path / "checkpoint.npz"
+    save_checkpoint(path, trees, {"step": 3})
+    loaded, meta = load_checkpoint(path, trees)
+    assert meta == {"step": 3}
+    np.testing.assert_array_equal(np.asarray(loaded["params"]["a"]), trees["params"]["a"])
+    raw = path.read_bytes()
+    middle = bytearray(raw)
+    middle[len(raw) // 2 : len(raw) // 2 + 64] = bytes(64)  # zeros over array data: bad CRC
+    damaged = {n: raw[:n] for n in (0, 30, len(raw) // 2, len(raw) - 1)} | {-1: bytes(middle)}
+    for n, content in damaged.items():
+        path.write_bytes(content)
+        with pytest.raises(InputError, match="not a usable checkpoint") as err:
+            load_checkpoint(path, trees)
+        assert "\n" not in str(err.value) and str(path) in str(err.value), n
+
+
+def test_ctrl_c_checkpoints_the_last_completed_step(sim_sequence, tmp_path):
+    """KeyboardInterrupt after step 1 writes step 1 (checkpoints otherwise every 10 steps)
+    and propagates; a rerun resumes there, and Ctrl-C inside its step 2 (during the
+    evaluation) leaves step 1 as the checkpoint, not half of step 2."""
+    import json
+
+    from gloam_jax.features import get_backbone
+    from gloam_jax.models import save_model
+    from gloam_jax.training.config import GradConfig, TrainConfig
+    from gloam_jax.training.grad import CHECKPOINT, load_checkpoint, train_grad
+    from gloam_jax.training.problem import fit_initial_model, setup
+
+    model = fit_initial_model(sim_sequence, ["00"], get_backbone("geometric"), every=20,
+                              init="gicp")  # fmt: skip
+    save_model(tmp_path / "start.npz", model)
+    config = batch.BatchConfig(rounds=2, max_source_points=200, segment_fractions=(0.3, 0.6),
+                               segment_step=2)  # fmt: skip
+    cfg = TrainConfig(
+        mode="grad", method="gicp_ce", data=str(sim_sequence), sequences=("00",), frames=5,
+        init_model=str(tmp_path / "start.npz"), batch=config,
+        grad=GradConfig(steps=3, eval_every=1, checkpoint_every=10, learning_rate=0.01),
+    )  # fmt: skip
+    run, cache = tmp_path / "run", tmp_path / "cache"
+
+    def ctrl_c_after(n):
+        def progress(done, total, best):
+            if done == n:
+                raise KeyboardInterrupt
+
+        return progress
+
+    problem = setup(cfg, run, cache_dir=cache)
+    with pytest.raises(KeyboardInterrupt):
+        train_grad(problem, ctrl_c_after(1))
+    templates = {"params": problem.init_params}
+    trees, meta = load_checkpoint(run / CHECKPOINT, templates)
+    assert meta["step"] == 1 and [h["step"] for h in meta["history"]] == [0, 1]
+    assert json.loads((run / "history.json").read_text()) == meta["history"]
+    # The weights written are step 1's: they score what step 1's evaluation logged.
+    t_err, _ = problem.training_loss(trees["params"])
+    assert t_err == pytest.approx(meta["history"][1]["t_err"], rel=1e-6)
+    assert t_err != pytest.approx(meta["history"][0]["t_err"], rel=1e-6)
+
+    # The rerun resumes at step 1 (its first evaluation is step 2's), interrupted there.
+    problem = setup(cfg, run, cache_dir=cache)
+    calls = []
+
+    def evaluate_then_ctrl_c(params):
+        calls.append(1)
+        raise KeyboardInterrupt
+
+    problem.evaluate_hard = evaluate_then_ctrl_c
+    with pytest.raises(KeyboardInterrupt):
+        train_grad(problem)
+    assert len(calls) == 1
+    again, meta_again = load_checkpoint(run / CHECKPOINT, templates)
+    assert meta_again["step"] == 1 and meta_again["history"] == meta["history"]
+    for a, b in zip(jax.tree_util.tree_leaves(again), jax.tree_util.tree_leaves(trees),
+                    strict=True):  # fmt: skip
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -9,12 +9,15 @@ solves. With ``source_points``, each step sees a fresh random subset of every pa
 points (seeded by the run's seed and the step, so a resumed run repeats them). Steps with a
 non-finite loss or gradient are skipped. Every ``eval_every`` steps the
 training loss is measured as TPE measures it (hard association), and the best weights by that
-number are kept. Checkpoints are written atomically; a rerun in the same folder resumes.
+number are kept. Checkpoints are written atomically; a rerun in the same folder resumes, also
+after Ctrl-C, which writes the last completed step before it propagates.
 """
 
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -63,8 +66,13 @@ def load_checkpoint(path, templates: dict) -> tuple[dict, dict]:
                     for x, t in zip(loaded, leaves, strict=True)
                 ]
                 trees[name] = jax.tree_util.tree_unflatten(treedef, typed)
-    except (OSError, KeyError, ValueError) as e:
-        raise InputError(path, f"not a usable checkpoint of this run ({e})") from None
+    # A truncated or damaged file (a copy cut short, a full disk) fails inside zipfile, zlib
+    # or the npy reader: each is a file to delete, not a traceback.
+    except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as e:
+        why = str(e) or type(e).__name__
+        raise InputError(
+            path, f"not a usable checkpoint of this run ({why}); delete it to start afresh"
+        ) from None
     return trees, meta
 
 
@@ -75,7 +83,8 @@ def _finite(tree) -> jax.Array:
 def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | None = None):
     """Run (or resume) gradient training; export the best weights to ``RUN/model.npz``.
 
-    ``progress(step, steps, best)`` after each step. Returns the exported model.
+    ``progress(step, steps, best)`` after each step. Returns the exported model. On
+    KeyboardInterrupt the last completed step is checkpointed, then it propagates.
     """
     cfg, run_dir = problem.config.grad, problem.run_dir
     optimizer = _optimizer(problem)
@@ -132,29 +141,41 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
         save_checkpoint(path, trees, meta)
         write_history(run_dir, history)
 
-    # Trace and compile the update in a thread while the start is evaluated: XLA compiles
-    # outside Python's lock, so the two overlap. A finished run compiles nothing.
-    with ThreadPoolExecutor(1) as pool:
-        compiling = (
-            pool.submit(lambda: update.lower(params, state, data.scans, data.pairs, step).compile())
-            if step < cfg.steps
-            else None
-        )
-        if step == 0 and not history:
-            evaluate(params, 0, None)
-        update_step = update if compiling is None else compiling.result()
-    soft = None
-    while step < cfg.steps:
-        params, state, value, ok = update_step(params, state, data.scans, data.pairs, step)
-        soft = float(value) if bool(ok) else None
-        step += 1
-        clock.lap()
-        if step % cfg.eval_every == 0 or step == cfg.steps:
-            evaluate(params, step, soft)
-        if step % cfg.checkpoint_every == 0 or step == cfg.steps:
-            checkpoint()
-        if progress is not None:
-            progress(step, cfg.steps, best)
+    # What the last completed step left (its update, evaluation and checkpoint all done), as
+    # one tuple, so that Ctrl-C arriving anywhere finds a consistent state to write.
+    done = (step, params, state, best, best_params, len(history))
+    scans, pairs = data.scans, data.pairs
+    try:
+        # Trace and compile the update in a thread while the start is evaluated: XLA compiles
+        # outside Python's lock, so the two overlap. A finished run compiles nothing.
+        with ThreadPoolExecutor(1) as pool:
+            compiling = (
+                pool.submit(lambda: update.lower(params, state, scans, pairs, step).compile())
+                if step < cfg.steps
+                else None
+            )
+            if step == 0 and not history:
+                evaluate(params, 0, None)
+                done = (step, params, state, best, best_params, len(history))
+            update_step = update if compiling is None else compiling.result()
+        soft = None
+        while step < cfg.steps:
+            params, state, value, ok = update_step(params, state, scans, pairs, step)
+            soft = float(value) if bool(ok) else None
+            step += 1
+            clock.lap()
+            if step % cfg.eval_every == 0 or step == cfg.steps:
+                evaluate(params, step, soft)
+            if step % cfg.checkpoint_every == 0 or step == cfg.steps:
+                checkpoint()
+            done = (step, params, state, best, best_params, len(history))
+            if progress is not None:
+                progress(step, cfg.steps, best)
+    except KeyboardInterrupt:
+        step, params, state, best, best_params, kept = done
+        del history[kept:]
+        checkpoint()
+        raise
     write_history(run_dir, history)
     plot_histories(
         {"training t_err (hard association)": (
