@@ -10,6 +10,11 @@ error. It differentiates through the LM solves with either optimistix adjoint.
 
 Pair ``b`` registers source scan ``i + 1`` to target scan ``i``: its estimate is
 ``T_prev_curr`` in the LiDAR frame, and :func:`trajectories` chains them per window.
+
+The pairs are independent, so they shard over a device mesh (:func:`pair_mesh`, by default
+every local device): each device registers its slice of the pairs against a copy of the
+scans, the pair count padded to a multiple of the device count with copies of
+the last pair, whose estimates no window reads. See docs/sharding.md.
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from gloam_jax import geometry as geo
 from gloam_jax.errors import InputError
@@ -195,6 +202,62 @@ def register_pairs(
     return jax.vmap(lambda p: register_pair(learned, scans, p, config, regularizer))(pairs)
 
 
+PAIRS = "pairs"  # the mesh axis that the pairs shard over
+
+
+def pair_mesh(devices=None) -> Mesh:
+    """A one-axis mesh (``"pairs"``) over ``devices``, by default every local device (one on
+    a plain CPU: then nothing is sharded)."""
+    devices = jax.local_devices() if devices is None else list(devices)
+    if not devices:
+        raise InputError(None, "a device mesh needs at least one device")
+    return Mesh(np.array(devices), (PAIRS,))
+
+
+def pad_pairs(pairs: PairBatch, multiple: int) -> PairBatch:
+    """The pairs padded to a multiple of ``multiple`` with copies of the last pair: valid
+    registrations whose estimates, after the real ones, no window reads (so they change
+    neither the errors nor the gradient). Traceable; unchanged when B already is one."""
+    extra = -pairs.target.shape[0] % multiple
+    if extra == 0:
+        return pairs
+    return jax.tree_util.tree_map(
+        lambda a: jnp.concatenate([a, jnp.repeat(a[-1:], extra, axis=0)]), pairs
+    )
+
+
+def place(scans: ScanSet, pairs: PairBatch, mesh: Mesh) -> tuple[ScanSet, PairBatch]:
+    """The scans copied to every device of ``mesh`` and the pairs, padded
+    (:func:`pad_pairs`), split along their leading axis: the layout the sharded functions
+    read without moving data."""
+    pairs = pad_pairs(pairs, mesh.size)
+    scans = jax.device_put(scans, NamedSharding(mesh, P()))
+    return scans, jax.device_put(pairs, NamedSharding(mesh, P(PAIRS)))
+
+
+def register_sharded(
+    learned: Learned,
+    scans: ScanSet,
+    pairs: PairBatch,
+    config: BatchConfig,
+    regularizer: str,
+    mesh: Mesh | None,
+) -> Array:
+    """:func:`register_pairs` with the pairs split over ``mesh`` (None or one device: not
+    split). Returns the estimates of the pairs padded to a multiple of the device count
+    (:func:`pad_pairs`): the first B are the pairs'. Traceable and differentiable."""
+    if mesh is None or mesh.size == 1:
+        return register_pairs(learned, scans, pairs, config, regularizer)
+    # Sharding annotations for XLA's partitioner (GSPMD), not shard_map: lineax's operators
+    # fail inside shard_map (patrick-kidger/lineax#185). Each device registers its pairs; the
+    # vmapped LM loops agree on their stopping step across devices (one small all-reduce).
+    split = NamedSharding(mesh, P(PAIRS))
+    scans = jax.lax.with_sharding_constraint(scans, NamedSharding(mesh, P()))
+    pairs = jax.lax.with_sharding_constraint(pad_pairs(pairs, mesh.size), split)
+    T_rel = register_pairs(learned, scans, pairs, config, regularizer)
+    return jax.lax.with_sharding_constraint(T_rel, split)
+
+
 def trajectories(T_rel: Array, windows: list[Window]) -> list[Array]:
     """Each window's estimated camera-0 trajectory (n, 4, 4), first pose identity, from the
     pairs' LiDAR-frame estimates (B, 4, 4): ``Tr @ T_world_lidar @ inv(Tr)``."""
@@ -211,9 +274,11 @@ def window_errors(T_rel: Array, windows: list[Window]) -> tuple[Array, Array]:
     return jnp.stack(t_err), jnp.stack(r_err)
 
 
-def loss(learned: Learned, data: BatchData, config: BatchConfig) -> Array:
-    """Mean translational relative error over the windows (a fraction): Eq. (8)'s loss."""
-    T_rel = register_pairs(learned, data.scans, data.pairs, config, data.regularizer)
+def loss(learned: Learned, data: BatchData, config: BatchConfig, mesh: Mesh | None = None) -> Array:
+    """Mean translational relative error over the windows (a fraction): Eq. (8)'s loss; the
+    pairs split over ``mesh`` (see :func:`register_sharded`), the same loss to float
+    rounding."""
+    T_rel = register_sharded(learned, data.scans, data.pairs, config, data.regularizer, mesh)
     return jnp.mean(window_errors(T_rel, data.windows)[0])
 
 
@@ -228,18 +293,22 @@ class Evaluation(NamedTuple):
 
 class Evaluator:
     """Jitted batch evaluation of learned parts on fixed data: ``Evaluator(data, cfg)(learned)``.
-    Compiles once per structure of ``learned`` (which parts are present)."""
+    Compiles once per structure of ``learned`` (which parts are present). The pairs are split
+    over ``mesh`` (default :func:`pair_mesh`: every local device); the scans and padded pairs
+    are placed on its devices once, here."""
 
-    def __init__(self, data: BatchData, config: BatchConfig) -> None:
+    def __init__(self, data: BatchData, config: BatchConfig, mesh: Mesh | None = None) -> None:
         self.data, self.config = data, config
-        windows, regularizer = data.windows, data.regularizer
+        self.mesh = pair_mesh() if mesh is None else mesh
+        windows, regularizer, mesh = data.windows, data.regularizer, self.mesh
+        self._scans, self._pairs = place(data.scans, data.pairs, mesh)
 
         def run(learned, scans, pairs):
-            T_rel = register_pairs(learned, scans, pairs, config, regularizer)
-            return (*window_errors(T_rel, windows), T_rel)
+            T_rel = register_sharded(learned, scans, pairs, config, regularizer, mesh)
+            return (*window_errors(T_rel, windows), T_rel[: data.num_pairs])
 
         self._run = jax.jit(run)
 
     def __call__(self, learned: Learned) -> Evaluation:
-        t, r, T = self._run(learned, self.data.scans, self.data.pairs)
+        t, r, T = self._run(learned, self._scans, self._pairs)
         return Evaluation(np.asarray(t), np.asarray(r), np.asarray(T))
