@@ -11,6 +11,9 @@ non-finite loss or gradient are skipped. Every ``eval_every`` steps the
 training loss is measured as TPE measures it (hard association), and the best weights by that
 number are kept. Checkpoints are written atomically; a rerun in the same folder resumes, also
 after Ctrl-C, which writes the last completed step before it propagates.
+
+The registrations of a step are split over a device mesh (default: every local device, so
+several GPUs share the pairs and one CPU changes nothing): see docs/sharding.md.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 from gloam_jax import io
 from gloam_jax.errors import InputError
@@ -80,13 +85,20 @@ def _finite(tree) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]))
 
 
-def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | None = None):
+def train_grad(
+    problem: Problem,
+    progress: Callable[[int, int, float], None] | None = None,
+    mesh: Mesh | None = None,
+):
     """Run (or resume) gradient training; export the best weights to ``RUN/model.npz``.
 
-    ``progress(step, steps, best)`` after each step. Returns the exported model. On
-    KeyboardInterrupt the last completed step is checkpointed, then it propagates.
+    ``progress(step, steps, best)`` after each step. Returns the exported model. Each step's
+    registrations are split over ``mesh`` (default :func:`batch.pair_mesh`: every local
+    device). On KeyboardInterrupt the last completed step is checkpointed, then it propagates.
     """
     cfg, run_dir = problem.config.grad, problem.run_dir
+    mesh = batch.pair_mesh() if mesh is None else mesh
+    replicated = NamedSharding(mesh, P())
     optimizer = _optimizer(problem)
     params = problem.init_params
     state = optimizer.init(params)
@@ -100,11 +112,14 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
         params, state, best_params = trees["params"], trees["state"], trees["best_params"]
         step, best, history = meta["step"], meta["best"], meta["history"]
         clock = Clock(meta["elapsed"])
-
+    # Weights and Adam's state on every device; the pairs split over them, once.
+    params, state, best_params = jax.device_put((params, state, best_params), replicated)
     data, config = problem.data, problem.config.batch
+    scans, pairs = batch.place(data.scans, data.pairs, mesh)
 
     def loss(p: Learned, scans, pairs):
-        return batch.loss(p, batch.BatchData(scans, pairs, data.windows, data.regularizer), config)
+        step_data = batch.BatchData(scans, pairs, data.windows, data.regularizer)
+        return batch.loss(p, step_data, config, mesh)
 
     rows = data.pairs.rows.shape[1]
     subset = rows if cfg.source_points is None else min(cfg.source_points, rows)
@@ -123,7 +138,8 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
         def keep(new, old):  # a skipped step leaves weights and Adam's moments as they were
             return jax.tree_util.tree_map(lambda a, b: jnp.where(ok, a, b), new, old)
 
-        return keep(new_p, p), keep(new_s, s), value, ok
+        new_p, new_s = keep(new_p, p), keep(new_s, s)
+        return *jax.lax.with_sharding_constraint((new_p, new_s), replicated), value, ok
 
     def evaluate(p: Learned, at: int, soft: float | None) -> None:
         nonlocal best, best_params
@@ -144,7 +160,6 @@ def train_grad(problem: Problem, progress: Callable[[int, int, float], None] | N
     # What the last completed step left (its update, evaluation and checkpoint all done), as
     # one tuple, so that Ctrl-C arriving anywhere finds a consistent state to write.
     done = (step, params, state, best, best_params, len(history))
-    scans, pairs = data.scans, data.pairs
     try:
         # Trace and compile the update in a thread while the start is evaluated: XLA compiles
         # outside Python's lock, so the two overlap. A finished run compiles nothing.
