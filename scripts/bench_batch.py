@@ -9,6 +9,16 @@ must agree), and (c) in a loop of the odometry's registration, ``registration.al
 the same source points, target scans and initial guesses (k-d tree candidates refreshed on
 the host every round, until converged). Timed after compilation, best of ``--repeats``.
 Prints registrations/s and each path's mean t_err over the windows.
+
+    python scripts/bench_batch.py --devices 1,2,4 --out bench_sharded.json
+
+instead times the batch evaluation (:class:`gloam_jax.training.batch.Evaluator`, hard
+association) with the pairs split over the first 1, 2, 4 devices, in one run (the counts
+taking turns, best of ``--repeats`` each), and prints registrations/s and the ratio to the
+first count. On a CPU host it asks XLA for that many virtual host devices
+(``--xla_force_host_platform_device_count``, set before JAX starts); they share the
+machine's cores. ``--data``, ``--sequences`` and ``--frames`` override the
+config's training data.
 """
 
 from __future__ import annotations
@@ -17,6 +27,7 @@ import argparse
 import dataclasses
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -82,6 +93,62 @@ def mean_t_err(T_rel, data: batch.BatchData) -> float:
     return float(100 * np.mean(np.asarray(t)))
 
 
+def host_devices(count: int) -> None:
+    """Ask XLA for ``count`` CPU devices; only takes effect before JAX's first computation."""
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if "host_platform_device" not in f]
+    flags.append(f"--xla_force_host_platform_device_count={count}")
+    os.environ["XLA_FLAGS"] = " ".join(flags)
+
+
+def bench_devices(problem, cfg: TrainConfig, counts: list[int], methods: list[str], repeats: int):
+    """Rows of registrations/s with the pairs split over the first N devices, N in counts.
+    The counts take turns within each repeat, so that a busy machine slows them alike; each
+    keeps its best time."""
+    devices = jax.devices()
+    if max(counts) > len(devices):
+        raise SystemExit(f"--devices asks for {max(counts)} devices; JAX sees {len(devices)}")
+    data, config = problem.data, dataclasses.replace(cfg.batch, association="hard")
+    rows = []
+    for method in methods:
+        learned = learned_parts(problem.model, method)
+        evaluators, first_call, best, results = {}, {}, {}, {}
+        for n in counts:
+            evaluators[n] = batch.Evaluator(data, config, batch.pair_mesh(devices[:n]))
+            t0 = time.perf_counter()
+            evaluators[n](learned)  # compiles
+            first_call[n], best[n] = time.perf_counter() - t0, np.inf
+        for _ in range(repeats):
+            for n in counts:
+                seconds, results[n] = best_of(1, evaluators[n], learned)
+                best[n] = min(best[n], seconds)
+        base = counts[0]
+        for n in counts:
+            row = {
+                "method": method,
+                "devices": n,
+                "device_kind": devices[0].device_kind,
+                "pairs": data.num_pairs,
+                "padded_pairs": data.num_pairs + (-data.num_pairs % n),
+                "source_points": int(data.pairs.rows.shape[1]),
+                "rounds": config.rounds,
+                "first_call_s": first_call[n],
+                "batch_s": best[n],
+                "batch_per_s": data.num_pairs / best[n],
+                "ratio_to_first": best[base] / best[n],
+                "max_abs_difference_to_first": float(
+                    np.max(np.abs(results[n].T_rel - results[base].T_rel))
+                ),
+                "t_err_percent": float(100 * np.mean(results[n].t_err)),
+            }
+            rows.append(row)
+            print(f"{method}: {n} device(s) ({row['device_kind']}), {data.num_pairs} registrations "
+                  f"in {best[n]:.3f} s: {row['batch_per_s']:.0f}/s, {row['ratio_to_first']:.2f}x "
+                  f"{base} device(s); max |T - T_{base}| "
+                  f"{row['max_abs_difference_to_first']:.1e}; t_err {row['t_err_percent']:.3f} %",
+                  flush=True)  # fmt: skip
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, default=Path("configs/train_tpe.yaml"))
@@ -90,12 +157,36 @@ def main() -> None:
     parser.add_argument("--methods", default="gicp,gloam")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--devices", default=None, help="e.g. 1,2,4: the sharded batch only")
+    parser.add_argument("--data", default=None, help="KITTI-layout root (default: the config's)")
+    parser.add_argument("--sequences", default=None, help="comma-separated ids")
+    parser.add_argument("--frames", type=int, default=None, help="first N scans of each")
     args = parser.parse_args()
+    counts = None if args.devices is None else [int(n) for n in args.devices.split(",")]
+    if counts is not None:
+        if min(counts) < 1:
+            raise SystemExit("--devices: counts must be >= 1")
+        host_devices(max(counts))  # before JAX starts; GPUs, when present, stay the default
     cfg = load_config(args.config, TrainConfig)
+    overrides = {"data": args.data, "frames": args.frames}
+    if args.sequences is not None:
+        overrides["sequences"] = tuple(args.sequences.split(","))
+    cfg = dataclasses.replace(cfg, **{k: v for k, v in overrides.items() if v is not None})
     if cfg.batch.map_scans != 1:
         raise SystemExit(f"{args.config}: the align_prepared loop registers scan to scan; "
                          "use a config with map_scans: 1")  # fmt: skip
     problem = setup(cfg, args.run, cache_dir=args.cache)
+    if counts is not None:
+        rows = bench_devices(problem, cfg, counts, args.methods.split(","), args.repeats)
+        if args.out is not None:
+            meta = {
+                "cpus": os.cpu_count(),
+                "jax": jax.__version__,
+                "devices": [str(d) for d in jax.devices()],
+                "command": " ".join(sys.argv),
+            }
+            write_atomic(args.out, json.dumps({"machine": meta, "rows": rows}, indent=2))
+        return
     data, config = problem.data, dataclasses.replace(cfg.batch, association="hard")
     # Data as arguments, not closed-over constants, which XLA would try to fold (minutes).
     register_pairs = jax.jit(batch.register_pairs, static_argnums=(3, 4))
