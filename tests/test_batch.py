@@ -202,8 +202,8 @@ def test_ctrl_c_checkpoints_the_last_completed_step(sim_sequence, tmp_path):
     assert t_err == pytest.approx(meta["history"][1]["t_err"], rel=1e-6)
     assert t_err != pytest.approx(meta["history"][0]["t_err"], rel=1e-6)
 
-    # The rerun resumes at step 1 (its first evaluation is step 2's), interrupted there.
-    problem = setup(cfg, run, cache_dir=cache)
+    # The rerun (the same prepared problem: nothing to recompile but the update) resumes at
+    # step 1, its first evaluation being step 2's; interrupted there.
     calls = []
 
     def evaluate_then_ctrl_c(params):
