@@ -107,6 +107,15 @@ def _complement(v: Array) -> tuple[Array, Array]:
     return u, jnp.cross(v, u)
 
 
+def surface(values: Array, vectors: Array) -> tuple[Array, Array]:
+    """Surface normals (..., 3), the smallest eigenvectors, and planarity (...,)
+    ``(l2 - l1) / l3`` of ascending eigenvalues: near 1 on a plane, near 0 along a line (a
+    sparse scan ring) or in a ball, where the normal means little."""
+    tiny = jnp.finfo(values.dtype).tiny
+    planarity = (values[..., 1] - values[..., 0]) / jnp.maximum(values[..., 2], tiny)
+    return vectors[..., :, 0], planarity
+
+
 def recompose(vectors: Array, values: Array) -> Array:
     """``V diag(values) V^T``: (..., 3, 3), (..., 3) -> (..., 3, 3)."""
     return geo.matmul(vectors * values[..., None, :], jnp.swapaxes(vectors, -1, -2))

@@ -129,7 +129,9 @@ def attributes(
 @partial(jax.jit, static_argnames=("regularizer",))
 def cloud_attributes(
     points: Array, neighbours: Array, pca_features: Array, learned: Learned, regularizer: str
-) -> tuple[Array, Array]:
-    """:func:`attributes` of points (N, 3) from their k-NN indices (N, k)."""
+) -> tuple[Array, Array, Array, Array]:
+    """:func:`attributes` of points (N, 3) from their k-NN indices (N, k), and the surface
+    normals (N, 3) and planarity (N,) of their neighbourhoods (:func:`covariance.surface`)."""
     values, vectors = cov.eigendecompose(cov.knn_covariances(points, neighbours))
-    return attributes(values, vectors, pca_features, learned, regularizer)
+    return (*attributes(values, vectors, pca_features, learned, regularizer),
+            *cov.surface(values, vectors))  # fmt: skip

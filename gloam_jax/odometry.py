@@ -44,19 +44,18 @@ class OdometryConfig:
     # Padded sizes (and so JAX compilations) may grow during these first frames only; later
     # scans with more points than their padded size are thinned evenly to fit it.
     warmup_frames: int = 20
-    degeneracy_threshold: float = 2e-4  # see weak_directions
-    lever_arm: float = 10.0  # m: how rotation (rad) compares with translation in weak_directions
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     gicp: GICPConfig = field(default_factory=GICPConfig)
 
     # Keys that moved into sections, for the error that old YAML files get.
     MOVED: ClassVar[dict[str, str]] = {
-        k: f"preprocess.{k}" for k in (*PreprocessConfig.SCAN_FIELDS, "regularizer")
+        **{k: f"preprocess.{k}" for k in (*PreprocessConfig.SCAN_FIELDS, "regularizer")},
+        "degeneracy_threshold": "gicp.degeneracy_threshold",
+        "lever_arm": "gicp.lever_arm",
     }
 
     def __post_init__(self) -> None:
-        for name in ("keyframe_distance", "keyframe_angle_deg", "degeneracy_threshold",
-                     "lever_arm"):  # fmt: skip
+        for name in ("keyframe_distance", "keyframe_angle_deg"):
             check_setting(is_positive(v := getattr(self, name)), name, "positive", v)
         check_setting(is_int(self.max_keyframes, 1), "max_keyframes", "an integer >= 1",
                       self.max_keyframes)  # fmt: skip
@@ -75,6 +74,10 @@ class FrameStatus:
     num_inliers: int = 0
     converged: bool = False
     degenerate: bool = False  # some directions were unconstrained and kept the motion prior
+    # the scene's weakest constraint over its strongest (registration.conditioning), and the
+    # weak directions, each (rho, lever_arm * phi) of unit length
+    condition: float = float("nan")
+    weak_directions: list[list[float]] = field(default_factory=list)
     error: str = ""  # bad input that made the frame fall back on the motion prior
 
 
@@ -89,8 +92,9 @@ class LocalMap:
     def __init__(self, max_keyframes: int, buckets: pc.StickyBuckets) -> None:
         self.max_keyframes = max_keyframes
         self.buckets = buckets
-        # (points, covariances, association features or None), in the world frame
-        self.keyframes: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]] = []
+        # each keyframe's PreparedCloud columns (points, covs, features, normals, planarity),
+        # in the world frame; features None for methods without learned association
+        self.keyframes: list[dict[str, np.ndarray | None]] = []
         self.last_pose: np.ndarray | None = None
         self.size = 0  # rows of the padded map
         self._merged: PreparedCloud | None = None
@@ -100,11 +104,19 @@ class LocalMap:
 
     def add(self, cloud: PreparedCloud, T_world_lidar: np.ndarray) -> None:
         R, t = T_world_lidar[:3, :3], T_world_lidar[:3, 3]
-        self.keyframes.append((cloud.points @ R.T + t, R @ cloud.covs @ R.T, cloud.features))
+        self.keyframes.append(
+            {
+                "points": cloud.points @ R.T + t,
+                "covs": R @ cloud.covs @ R.T,
+                "features": cloud.features,
+                "normals": cloud.normals @ R.T,
+                "planarity": cloud.planarity,
+            }
+        )
         self.keyframes = self.keyframes[-self.max_keyframes :]
         # Padding the map to its capacity once full, keyframes at the scans' padded size, keeps
         # its shape, and so the solver's, fixed. Sized here: StickyBuckets is not thread-safe.
-        largest = max(len(k[0]) for k in self.keyframes)
+        largest = max(len(k["points"]) for k in self.keyframes)
         self.size = self.max_keyframes * self.buckets("scan", largest)
         self._pending = self._worker.submit(_merge, list(self.keyframes), self.size)
         self.last_pose = T_world_lidar
@@ -117,12 +129,13 @@ class LocalMap:
         return self._merged
 
 
-def _merge(keyframes: list, size: int) -> PreparedCloud:
+def _merge(keyframes: list[dict], size: int) -> PreparedCloud:
     """One prepared cloud of world-frame keyframes, its device arrays padded to ``size``."""
-    points = np.concatenate([k[0] for k in keyframes])
-    covs = np.concatenate([k[1] for k in keyframes])
-    features = None if keyframes[0][2] is None else np.concatenate([k[2] for k in keyframes])
-    cloud = PreparedCloud(points, covs, KdTree(points, "local map"), features)
+    merged = {
+        k: None if keyframes[0][k] is None else np.concatenate([f[k] for f in keyframes])
+        for k in keyframes[0]
+    }
+    cloud = PreparedCloud(tree=KdTree(merged["points"], "local map"), **merged)
     cloud.padded(size)
     return cloud
 
@@ -135,21 +148,6 @@ def _needs_keyframe(last: np.ndarray | None, T: np.ndarray, config: OdometryConf
     return (
         np.linalg.norm(delta[:3, 3]) > config.keyframe_distance or angle > config.keyframe_angle_deg
     )
-
-
-def weak_directions(H: np.ndarray, lever_arm: float, threshold: float) -> np.ndarray:
-    """Directions of the increment (gicp.retract) that the scene does not constrain (a tunnel's
-    axis, a bare highway's): orthonormal columns (6, m) in coordinates ``z = (rho, lever_arm *
-    phi)``, both in metres.
-
-    A direction is weak when its information (an eigenvalue of H in those coordinates) is below
-    ``threshold`` times the strongest one's. Measured with plane covariances: a corridor's axis
-    at 6e-5, a simulated highway (KITTI 01's path) at 4e-4 to 1e-3, which the registration still
-    resolves better than the motion prior would.
-    """
-    S = np.diag([1.0, 1.0, 1.0, 1.0 / lever_arm, 1.0 / lever_arm, 1.0 / lever_arm])
-    values, vectors = np.linalg.eigh(S @ H @ S)
-    return vectors[:, values < threshold * max(values[-1], 1e-300)]
 
 
 def remap(T_prior: np.ndarray, T_est: np.ndarray, weak: np.ndarray, lever_arm: float):
@@ -259,11 +257,12 @@ class Odometry:
         result = align_prepared(target, cloud, prior, cfg.gicp, sizes)
         status.iterations, status.num_inliers = result.iterations, result.num_inliers
         status.converged = result.converged
-        T = result.T_target_source
-        weak = weak_directions(result.H, cfg.lever_arm, cfg.degeneracy_threshold)
-        if weak.shape[1]:
+        T, weak = result.T_target_source, result.weak_directions
+        status.condition = result.condition
+        status.weak_directions = weak.T.round(4).tolist()
+        if result.degenerate:
             status.degenerate = True
-            T = prior if result.num_inliers == 0 else remap(prior, T, weak, cfg.lever_arm)
+            T = prior if result.num_inliers == 0 else remap(prior, T, weak, cfg.gicp.lever_arm)
         T = T_world_target @ T
         return self._accept(T, cloud, status)
 

@@ -34,6 +34,10 @@ class PreparedCloud:
     tree: KdTree
     features: np.ndarray | None = None  # (N, F) for data association; None: none (F = 0)
     num_dropped: int = 0  # NaN / inf points removed
+    # The k-NN neighbourhoods' normals (N, 3) and planarity (N,), for conditioning(); None:
+    # taken from the covariances' smallest axes, every point counted as planar.
+    normals: np.ndarray | None = None
+    planarity: np.ndarray | None = None
 
     @cached_property
     def radius(self) -> float:
@@ -66,7 +70,12 @@ class PreparedCloud:
 class RegistrationResult(NamedTuple):
     """Outcome of :func:`align`; ``H``, ``b`` and ``error`` are the Gauss-Newton system over
     the increment of :func:`gloam_jax.gicp.retract` and the sum of squared whitened
-    residuals at the final estimate."""
+    residuals at the final estimate.
+
+    ``converged`` says the iterations settled; ``degenerate`` says the scene leaves the answer
+    undetermined along ``weak_directions`` (6, m) (a tunnel's or a corridor's axis), in
+    coordinates ``(rho, lever_arm * phi)``; ``condition`` is the weakest constraint over the
+    strongest (see :func:`conditioning`)."""
 
     T_target_source: np.ndarray
     converged: bool
@@ -75,6 +84,48 @@ class RegistrationResult(NamedTuple):
     H: np.ndarray
     b: np.ndarray
     error: float
+    condition: float
+    weak_directions: np.ndarray
+
+    @property
+    def degenerate(self) -> bool:
+        return self.weak_directions.shape[1] > 0
+
+
+def constraint_matrix(
+    target: PreparedCloud, source: PreparedCloud, T: np.ndarray, max_distance: float
+) -> np.ndarray:
+    """How the scene's surfaces constrain ``T_target_source``: the point-to-plane system
+    (6, 6) over the increment of :func:`gloam_jax.gicp.retract`, each source point paired with
+    its nearest target point within ``max_distance``, weighted by that point's planarity.
+
+    Unlike GICP's own H it carries none of the plane regulariser's in-plane weight, which
+    gives a tunnel's axis as much information as a healthy drive's weakest direction, and the
+    planarity weight leaves out the normals of line-like neighbourhoods (sparse scan rings),
+    which move with the sensor and would pin it in place.
+    """
+    moved = source.points @ T[:3, :3].T + T[:3, 3]
+    index, found = target.tree.query(moved, 1, max_distance)
+    index, found = index[:, 0], found[:, 0]
+    if target.normals is None:
+        normals = np.linalg.eigh(target.covs[index])[1][..., 0]
+        weight = found.astype(np.float64)
+    else:
+        normals = target.normals[index]
+        weight = np.where(found, np.clip(target.planarity[index], 0.0, 1.0), 0.0)
+    rows = np.concatenate([normals, np.cross(moved - T[:3, 3], normals)], axis=1)
+    return (rows * weight[:, None]).T @ rows
+
+
+def conditioning(A: np.ndarray, lever_arm: float, threshold: float) -> tuple[float, np.ndarray]:
+    """The weakest over the strongest eigenvalue of the constraint matrix ``A`` (6, 6) (see
+    :func:`constraint_matrix`) in coordinates ``z = (rho, lever_arm * phi)``, both in metres,
+    and the directions below ``threshold`` times the strongest: orthonormal columns (6, m) in
+    those coordinates."""
+    S = np.diag([1.0, 1.0, 1.0, 1.0 / lever_arm, 1.0 / lever_arm, 1.0 / lever_arm])
+    values, vectors = np.linalg.eigh(S @ A @ S)
+    strongest = max(values[-1], 1e-300)
+    return float(max(values[0], 0.0) / strongest), vectors[:, values < threshold * strongest]
 
 
 def prepare(
@@ -115,16 +166,18 @@ def build_cloud(
         pca_features = np.zeros((len(points), 0))
     # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
     size = pc.bucket_size(len(points)) if size is None else size
-    covs, features = cloud_attributes(
+    covs, features, normals, planarity = cloud_attributes(
         jnp.asarray(pc.pad(points, size)[0]),
         jnp.asarray(pc.pad(neighbours, size)[0]),
         jnp.asarray(pc.pad(np.asarray(pca_features), size)[0]),
         learned,
         regularizer,
     )
-    covs = np.asarray(covs, dtype=np.float64)[: len(points)]
-    features = None if learned.conversion is None else np.asarray(features)[: len(points)]
-    return PreparedCloud(points, covs, tree, features)
+    n = len(points)
+    covs = np.asarray(covs, dtype=np.float64)[:n]
+    features = None if learned.conversion is None else np.asarray(features)[:n]
+    normals, planarity = np.asarray(normals, np.float64)[:n], np.asarray(planarity)[:n]
+    return PreparedCloud(points, covs, tree, features, normals=normals, planarity=planarity)
 
 
 def align_prepared(
@@ -173,7 +226,11 @@ def align_prepared(
         if inliers > 0 and fresh and small and np.linalg.norm(step[:3]) < config.translation_eps:
             converged = True
             break
-    return RegistrationResult(T, converged, iterations, int(inliers), H, b, float(error))
+    A = constraint_matrix(target, source, T, config.max_correspondence_distance)
+    condition, weak = conditioning(A, config.lever_arm, config.degeneracy_threshold)
+    return RegistrationResult(
+        T, converged, iterations, int(inliers), H, b, float(error), condition, weak
+    )
 
 
 def _largest_shift(T_from: np.ndarray, T_to: np.ndarray, radius: float) -> float:
