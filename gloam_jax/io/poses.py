@@ -40,6 +40,8 @@ _FLOAT_FMT = "%.16e"
 # Inputs are usually read from text with ~9 significant digits, so the bottom row of a pose is
 # only checked loosely: it exists to catch a (3,4)->(4,4) padding bug, not rounding.
 _BOTTOM_ROW_ATOL = 1e-6
+# KITTI pose files hold rotations to about 1e-9; anything off by more than this is no rotation.
+_ROTATION_ATOL = 1e-3
 
 
 def to_homogeneous(top: np.ndarray) -> np.ndarray:
@@ -59,9 +61,10 @@ def as_poses(
 ) -> NDArray[np.float64]:
     """Check a trajectory and return it as a float64 ``(N, 4, 4)`` array.
 
-    The trajectory must be numeric, non-empty and finite, and every bottom row ``[0, 0, 0, 1]``
-    (to 1e-6, as text files round). ``top_rows_ok`` also accepts KITTI's ``(N, 3, 4)`` top rows
-    and completes them. ``what`` names the trajectory in messages (``"ground-truth"``);
+    The trajectory must be numeric, non-empty and finite, every bottom row ``[0, 0, 0, 1]``
+    (to 1e-6, as text files round) and every rotation block a rotation (orthonormal to 1e-3,
+    determinant +1): a scaled or zeroed block is no pose, and would be scored as one.
+    ``top_rows_ok`` also accepts KITTI's ``(N, 3, 4)`` top rows and completes them. ``what`` names the trajectory in messages (``"ground-truth"``);
     failures raise :class:`InputError` with ``source`` as the file name.
     """
     named = f"{what} " if what else ""
@@ -91,6 +94,16 @@ def as_poses(
             source,
             f"{named}pose {first} is not homogeneous: last row is {arr[first, 3].tolist()}, "
             "expected [0, 0, 0, 1]",
+        )
+    R = arr[:, :3, :3]
+    off = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+    rigid = (off <= _ROTATION_ATOL) & (np.linalg.det(R) > 0)
+    if not rigid.all():
+        first = int(np.flatnonzero(~rigid)[0])
+        raise InputError(
+            source,
+            f"{named}pose {first} has a rotation block that is not a rotation "
+            f"(R^T R differs from I by {off[first]:.3g}, det {np.linalg.det(R[first]):.3g})",
         )
     return arr
 
