@@ -1,6 +1,5 @@
 """GICP registration: neighbour sets, covariances, recovered transforms, bad input."""
 
-
 import jax
 import numpy as np
 import pytest
@@ -134,6 +133,7 @@ def test_real_pair_recovers_reference():
 
 def test_agrees_with_small_gicp():
     import small_gicp
+
     target = structured_scene(0)
     T_true = np.asarray(geo.se3_exp(np.array([0.6, 0.2, 0.0, 0.0, 0.0, 0.05])), np.float64)
     source = structured_scene(3) @ T_true[:3, :3] - T_true[:3, :3].T @ T_true[:3, 3]

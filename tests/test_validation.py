@@ -84,3 +84,18 @@ def test_a_model_with_a_zero_pca_scale_is_refused(tmp_path):
     save_model(tmp_path / "m.npz", dataclasses.replace(model, pca=model.pca._replace(scale=scale)))
     with pytest.raises(InputError, match="m.npz: 'pca_scale' must be positive"):
         load_model(tmp_path / "m.npz")
+
+
+def test_eval_refuses_rotation_blocks_that_are_not_rotations(tmp_path):
+    from gloam_jax import io, metrics
+
+    gt = np.tile(np.eye(4), (5, 1, 1))
+    gt[:, 0, 3] = np.arange(5.0)
+    for bad, how in ((3.0, "scaled"), (0.0, "zeroed")):
+        est = gt.copy()
+        est[2, :3, :3] *= bad
+        with pytest.raises(InputError, match=f"{how}.txt: estimated pose 2 has a rotation block"):
+            metrics.ate(gt, est, source=f"{how}.txt")
+        np.savetxt(tmp_path / f"{how}.txt", est[:, :3].reshape(5, 12))
+        with pytest.raises(InputError, match="pose 2 has a rotation block that is not a rotation"):
+            metrics.evaluate(gt, io.read_kitti_poses(tmp_path / f"{how}.txt"))

@@ -64,8 +64,9 @@ def as_poses(
     The trajectory must be numeric, non-empty and finite, every bottom row ``[0, 0, 0, 1]``
     (to 1e-6, as text files round) and every rotation block a rotation (orthonormal to 1e-3,
     determinant +1): a scaled or zeroed block is no pose, and would be scored as one.
-    ``top_rows_ok`` also accepts KITTI's ``(N, 3, 4)`` top rows and completes them. ``what`` names the trajectory in messages (``"ground-truth"``);
-    failures raise :class:`InputError` with ``source`` as the file name.
+    ``top_rows_ok`` also accepts KITTI's ``(N, 3, 4)`` top rows and completes them. ``what``
+    names the trajectory in messages (``"ground-truth"``); failures raise
+    :class:`InputError` with ``source`` as the file name.
     """
     named = f"{what} " if what else ""
     try:
