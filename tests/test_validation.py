@@ -99,3 +99,11 @@ def test_eval_refuses_rotation_blocks_that_are_not_rotations(tmp_path):
         np.savetxt(tmp_path / f"{how}.txt", est[:, :3].reshape(5, 12))
         with pytest.raises(InputError, match="pose 2 has a rotation block that is not a rotation"):
             metrics.evaluate(gt, io.read_kitti_poses(tmp_path / f"{how}.txt"))
+
+
+def test_a_singular_calibration_is_refused(tmp_path):
+    from gloam_jax import io
+
+    (tmp_path / "calib.txt").write_text("Tr: 0 0 0 0 0 0 0 0 0 0 0 0\n")
+    with pytest.raises(InputError, match=r"calib.txt: line 1 \(Tr\) is not a rigid transform"):
+        io.read_calib(tmp_path / "calib.txt")

@@ -60,6 +60,15 @@ def read_calib(path: PathLike) -> dict[str, np.ndarray]:
                 raise InputError(
                     name, f"line {lineno} ({key}) has {values.size} columns, expected 12"
                 )
+            R = entries[key][:3, :3]
+            # Tr maps LiDAR points into the camera: a rigid motion, so invertible with det +1.
+            if not abs(np.linalg.det(R) - 1.0) < 0.01 or not np.allclose(
+                entries[key][3], [0, 0, 0, 1]
+            ):
+                raise InputError(
+                    name,
+                    f"line {lineno} ({key}) is not a rigid transform (det {np.linalg.det(R):.3g})",
+                )
         else:
             shape = {9: (3, 3), 12: (3, 4), 16: (4, 4)}.get(values.size, (values.size,))
             entries[key] = values.reshape(shape)
