@@ -2,4 +2,5 @@
 
 from gloam_jax.cli import app
 
-app()
+if __name__ == "__main__":  # not when a spawned worker imports this module
+    app()

@@ -440,6 +440,38 @@ def _plane_axes(*positions: NDArray[np.float64]) -> tuple[int, int]:
     return int(first), int(second)
 
 
+def _trajectory_panel(ax, p_gt, p_est, axes: tuple[int, int]) -> None:
+    """Estimated (and ground-truth, unless None) positions (N, 3) on the plane of ``axes``."""
+    a, b = axes
+    if p_gt is not None:
+        ax.plot(p_gt[:, a], p_gt[:, b], color="tab:red", lw=1.2, label="ground truth")
+    ax.plot(p_est[:, a], p_est[:, b], color="tab:blue", lw=1.2, label="estimate")
+    ax.plot(p_est[0, a], p_est[0, b], "ks", ms=6, mfc="none", label="start")
+    ax.set_xlabel(f"{'xyz'[a]} [m]")
+    ax.set_ylabel(f"{'xyz'[b]} [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.grid(True, alpha=0.3)
+    ax.legend(loc="best")
+
+
+def plot_trajectory(
+    est_poses: ArrayLike, gt_poses: ArrayLike | None, path: str | os.PathLike[str], title: str
+) -> Path:
+    """Write a PNG of the trajectory panel alone (where no RTE is available): the estimate, and
+    the ground truth unless None, on the plane of their two largest extents."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    p_est = as_poses(est_poses, "estimated")[:, :3, 3]
+    p_gt = None if gt_poses is None else as_poses(gt_poses, "ground-truth")[:, :3, 3]
+    fig = Figure(figsize=(7.0, 6.0), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    _trajectory_panel(ax, p_gt, p_est, _plane_axes(*(p for p in (p_est, p_gt) if p is not None)))
+    ax.set_title(title, fontsize=9)
+    return write_figure(path, fig, dpi=110)
+
+
 def plot_evaluation(
     gt_poses: ArrayLike,
     est_poses: ArrayLike,
@@ -465,7 +497,6 @@ def plot_evaluation(
         rte_result = kitti_rte(gt, est, source=source)
     p_gt, p_est = gt[:, :3, 3], est[:, :3, 3]
     ax0, ax1 = _plane_axes(p_gt, p_est)
-    names = "xyz"
 
     fig = Figure(figsize=(13.0, 6.0), layout="constrained")
     FigureCanvasAgg(fig)
@@ -474,14 +505,7 @@ def plot_evaluation(
     ax_t = fig.add_subplot(grid[0, 1])
     ax_r = fig.add_subplot(grid[1, 1], sharex=ax_t)
 
-    ax_traj.plot(p_gt[:, ax0], p_gt[:, ax1], color="tab:red", lw=1.2, label="ground truth")
-    ax_traj.plot(p_est[:, ax0], p_est[:, ax1], color="tab:blue", lw=1.2, label="estimate")
-    ax_traj.plot(p_gt[0, ax0], p_gt[0, ax1], "ks", ms=6, mfc="none", label="start")
-    ax_traj.set_xlabel(f"{names[ax0]} [m]")
-    ax_traj.set_ylabel(f"{names[ax1]} [m]")
-    ax_traj.set_aspect("equal", adjustable="datalim")
-    ax_traj.grid(True, alpha=0.3)
-    ax_traj.legend(loc="best")
+    _trajectory_panel(ax_traj, p_gt, p_est, (ax0, ax1))
     ax_traj.set_title(
         f"t_err {rte_result.t_err_percent:.3f} %   "
         f"r_err {rte_result.r_err_deg_per_100m:.4f} deg/100m   "

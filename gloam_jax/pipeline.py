@@ -190,35 +190,9 @@ def write_run(dataset: Dataset, odometry: Odometry, config: OdometryConfig, out_
         except InputError as err:  # too short for the devkit's segments: ATE only
             result["rte_unavailable"] = err.problem
             result["ate"] = metrics.ate(gt, T_cam).to_dict()
-            plot_trajectory(T_cam, gt, plot, f"{name}: RTE unavailable ({err.problem})")
+            metrics.plot_trajectory(T_cam, gt, plot, f"{name}: RTE unavailable ({err.problem})")
     else:
-        plot_trajectory(T_cam, None, plot, f"{name} (no ground truth)")
+        metrics.plot_trajectory(T_cam, None, plot, f"{name} (no ground truth)")
     io.write_atomic(out / "frames.json", json.dumps(flags))
     io.write_atomic(out / "metrics.json", json.dumps(result, indent=2))
     return result
-
-
-def plot_trajectory(est: np.ndarray, gt: np.ndarray | None, path: Path, title: str) -> Path:
-    """The trajectory panel alone: the estimate (and ground truth) seen along the axis of
-    least extent (top-down for a vehicle)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    p_est = est[:, :3, 3]
-    p_all = p_est if gt is None else np.concatenate([p_est, gt[:, :3, 3]])
-    extent = p_all.max(axis=0) - p_all.min(axis=0)
-    a, b = sorted(np.argsort(-extent, kind="stable")[:2].tolist())
-    fig = Figure(figsize=(7.0, 6.0), layout="constrained")
-    FigureCanvasAgg(fig)
-    ax = fig.add_subplot()
-    if gt is not None:
-        ax.plot(gt[:, a, 3], gt[:, b, 3], color="tab:red", lw=1.2, label="ground truth")
-    ax.plot(p_est[:, a], p_est[:, b], color="tab:blue", lw=1.2, label="estimate")
-    ax.plot(p_est[0, a], p_est[0, b], "ks", ms=6, mfc="none", label="start")
-    ax.set_xlabel(f"{'xyz'[a]} [m]")
-    ax.set_ylabel(f"{'xyz'[b]} [m]")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(True, alpha=0.3)
-    ax.legend(loc="best")
-    ax.set_title(title, fontsize=9)
-    return io.write_figure(path, fig, dpi=110)

@@ -68,7 +68,7 @@ def eval_(
         write_json(json_out, result)
     if plot is not None:
         if "rte_unavailable" in result:
-            from gloam_jax.pipeline import plot_trajectory
+            from gloam_jax.metrics import plot_trajectory
 
             plot_trajectory(est_poses, gt_poses, plot, f"{est.name}: ATE only")
         else:
