@@ -22,6 +22,8 @@ from gloam_jax.odometry import OdometryConfig
         ("inner_steps", 1, "gicp.inner_steps must be an integer >= 2"),
         ("max_correspondence_distance", -0.5, "max_correspondence_distance must be positive"),
         ("rotation_eps", float("nan"), "gicp.rotation_eps must be positive"),
+        ("degeneracy_threshold", -1e-4, "gicp.degeneracy_threshold must be positive"),
+        ("lever_arm", 0.0, "gicp.lever_arm must be positive"),
     ],
 )
 def test_gicp_settings(field, value, message):
@@ -35,7 +37,6 @@ def test_gicp_settings(field, value, message):
         ("max_keyframes", 0, "max_keyframes must be an integer >= 1"),
         ("warmup_frames", -1, "warmup_frames must be an integer >= 0"),
         ("keyframe_distance", 0.0, "keyframe_distance must be positive"),
-        ("degeneracy_threshold", -1e-4, "degeneracy_threshold must be positive"),
     ],
 )
 def test_odometry_settings(field, value, message):
