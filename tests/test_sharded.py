@@ -69,6 +69,8 @@ def test_sharded_gradient_step_matches_one_device(sim_sequence, tmp_path):
     assert meta["pairs"] == 5
     assert np.isfinite(meta["loss_1"]) and meta["loss_1"] > 0
     assert meta["loss_4"] == pytest.approx(meta["loss_1"], rel=1e-5)
+    # The step's own loss is another fusion of the same sums (with its gradient): float32 noise.
+    assert meta["loss_step"] == pytest.approx(meta["loss_1"], rel=1e-4)
     g = np.load(tmp_path / "grad.npz")
     one, four = g["moment_expected"], g["moment_after"]
     assert np.all(np.isfinite(one)) and np.linalg.norm(one) > 0
@@ -153,9 +155,11 @@ def _grad(root: Path, out: Path) -> dict:
     devices = jax.devices()
     meta = {"devices": len(devices), "pairs": data.num_pairs}
     # The loss and gradient on one device, and the Adam step they make.
-    one = batch.pair_mesh(devices[:1])
+    one, four = batch.pair_mesh(devices[:1]), batch.pair_mesh(devices)
     value, grad = jax.jit(jax.value_and_grad(lambda p: batch.loss(p, data, cfg.batch, one)))(params)
     meta["loss_1"] = float(value)
+    # The same program with the pairs over the 4 devices.
+    meta["loss_4"] = float(jax.jit(lambda p: batch.loss(p, data, cfg.batch, four))(params))
     optimizer = _optimizer(problem)
     start = optimizer.init(params)
     updates, expected_state = optimizer.update(grad, start, params)
@@ -164,7 +168,7 @@ def _grad(root: Path, out: Path) -> dict:
     # it wrote. Adam's first moment after one step is 0.1 x the (clipped) gradient it used.
     train_grad(problem, mesh=batch.pair_mesh(devices))
     history = json.loads((out / "run" / "history.json").read_text())
-    meta["loss_4"] = history[-1]["soft_loss"]
+    meta["loss_step"] = history[-1]["soft_loss"]
     templates = {"params": params, "state": start}
     trees, _ = load_checkpoint(out / "run" / CHECKPOINT, templates)
     flat = lambda tree: np.asarray(ravel_pytree(tree)[0])  # noqa: E731
