@@ -115,6 +115,10 @@ def frame_progress(description: str, total: int, every: int | None = None) -> It
 
 
 COMPILATION_CACHE_ENV = "GLOAM_COMPILATION_CACHE"
+CACHE_HELP = (
+    "JAX's persistent compilation cache (in the user cache folder): a second run compiles "
+    "less. Also off with GLOAM_COMPILATION_CACHE=0."
+)
 
 
 def use_compilation_cache(enabled: bool | None = None) -> Path | None:

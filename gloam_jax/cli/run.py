@@ -10,6 +10,7 @@ from rich.table import Table
 
 from gloam_jax import __version__
 from gloam_jax.cli.common import (
+    CACHE_HELP,
     app,
     cache_dir,
     console,
@@ -137,10 +138,6 @@ def method_settings(config: Path | None, method: str | None, weights: Path | Non
     return settings
 
 
-_CACHE_HELP = (
-    "JAX's persistent compilation cache (in the user cache folder): a second run compiles "
-    "less. Also off with GLOAM_COMPILATION_CACHE=0."
-)
 
 
 @app.command(
@@ -182,7 +179,7 @@ def run(
         Path | None,
         typer.Option(help="Folder of per-scan features (NNNNNN.npy/.txt) instead of the model's."),
     ] = None,
-    compilation_cache: Annotated[bool, typer.Option(help=_CACHE_HELP)] = True,
+    compilation_cache: Annotated[bool, typer.Option(help=CACHE_HELP)] = True,
 ) -> None:
     """Run LiDAR odometry on a KITTI sequence or a folder of scans (real or simulated), and
     score it when ground truth exists."""
@@ -205,7 +202,7 @@ def demo(
         "results"
     ),
     seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
-    compilation_cache: Annotated[bool, typer.Option(help=_CACHE_HELP)] = True,
+    compilation_cache: Annotated[bool, typer.Option(help=CACHE_HELP)] = True,
 ) -> None:
     """Simulate a short urban drive (cached), run GICP and Generalized LOAM (the shipped
     model) odometry on it, and score both."""

@@ -8,7 +8,16 @@ from typing import Annotated
 
 import typer
 
-from gloam_jax.cli.common import Tasks, app, console, err_console, progress_bar, user_errors
+from gloam_jax.cli.common import (
+    CACHE_HELP,
+    Tasks,
+    app,
+    console,
+    err_console,
+    progress_bar,
+    use_compilation_cache,
+    user_errors,
+)
 from gloam_jax.errors import InputError
 
 
@@ -112,8 +121,11 @@ def train(
         str | None, typer.Option(help="TPE study name (default: the --out folder's name).")
     ] = None,
     workers: Annotated[int, typer.Option(min=1, help="TPE worker processes on this machine.")] = 1,
+    compilation_cache: Annotated[bool, typer.Option(help=CACHE_HELP)] = True,
 ) -> None:
     """Train the MLPs by TPE (the paper's black-box search) or by gradients through GICP."""
+    if compilation_cache:
+        use_compilation_cache()
     previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         _train(config, mode, data, out, trials, seed, steps, learning_rate, cache, storage,
