@@ -1,8 +1,8 @@
-"""The ``gloam`` command line: simulate, run, eval, demo, init-model, train."""
+"""The ``gloam`` command line: simulate, run, eval, demo, init-model, train, train-backbone."""
 
 from __future__ import annotations
 
-from gloam_jax.cli import config, run, simulate, train  # noqa: F401  (they register their commands)
+from gloam_jax.cli import backbone, config, run, simulate, train  # noqa: F401  (they register their commands)
 from gloam_jax.cli.common import app
 
 __all__ = ["app"]

@@ -4,9 +4,9 @@ A backbone maps one raw scan (N, 3+) ``x y z [intensity]`` (plus, optionally, th
 path or frame index, which file-based backbones need) to features (N, D) float32,
 row-aligned with the scan's points::
 
-    backbone = get_backbone("geometric")            # or get_backbone("precomputed", folder=...)
-    raw = backbone(scan, path=seq.scan_path(i))      # (N, D)
-    f = pca.transform(raw)                           # (N, 6), pca = fit_pca([...]) once
+    backbone = get_backbone("geometric")        # or "net", or "precomputed" with folder=...
+    raw = backbone(scan, path=seq.scan_path(i))  # (N, D)
+    f = pca.transform(raw)                       # (N, 6), pca = fit_pca([...]) once
 
 ``backbone.name`` and ``backbone.options()`` rebuild it: ``get_backbone(name, **options)``.
 """
@@ -20,6 +20,7 @@ import numpy as np
 
 from gloam_jax.errors import InputError
 from gloam_jax.features.geometric import GeometricBackbone
+from gloam_jax.features.net import NetBackbone
 from gloam_jax.features.pca import FeaturePCA, fit_pca
 from gloam_jax.features.precomputed import PrecomputedBackbone
 
@@ -28,6 +29,7 @@ __all__ = [
     "Backbone",
     "FeaturePCA",
     "GeometricBackbone",
+    "NetBackbone",
     "PrecomputedBackbone",
     "fit_pca",
     "get_backbone",
@@ -52,6 +54,7 @@ class Backbone(Protocol):
 
 BACKBONES: dict[str, type] = {
     GeometricBackbone.name: GeometricBackbone,
+    NetBackbone.name: NetBackbone,
     PrecomputedBackbone.name: PrecomputedBackbone,
 }
 

@@ -1,0 +1,317 @@
+"""Net backbone: a small RandLA-Net-style point segmentation network in JAX (equinox).
+
+Equinox, not flax: it is already installed (optimistix depends on it), and its models are
+plain pytrees, so the weights pass through ``jax.grad``, ``optax`` and the odometry's own
+jitted functions like any other array tree (fine-tuning through GICP needs nothing more).
+
+One scan, on the host (NumPy and scipy's k-d tree), then one jitted call:
+
+1. voxel means at ``voxel_size`` (level 0, M points) and their k-NN graph (M, K);
+2. random sampling of one voxel in ``ratio`` (level 1; a fixed seed over the voxels in
+   sorted key order, so the choice does not depend on the order of the scan's points), the
+   level-1 k-NN graph and each voxel's nearest level-1 point;
+3. both levels padded to size buckets (padded rows only ever read themselves, so no mask is
+   needed inside the network);
+4. the network: per-voxel inputs (range / 50 m, z / 3 m, intensity) -> dense; local
+   aggregation (local spatial encoding of relative positions + attentive pooling) at level
+   0; max-pooling onto level 1 over each sampled voxel's level-0 neighbours; local
+   aggregation at level 1; nearest-neighbour upsampling, concatenated with the level-0
+   features -> dense + ReLU: the embedding (M, ``embed``); -> dense: class logits.
+
+Each raw point gets its voxel's embedding, so the features are row-aligned with the scan.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.spatial import cKDTree
+
+from gloam_jax import pointcloud as pc
+from gloam_jax.errors import InputError
+from gloam_jax.io.files import write_npz
+
+# Training classes: SemanticKITTI ids; moving objects fold into their static class (one scan
+# cannot tell motion).
+CLASSES = (
+    "car", "bicycle", "person", "bicyclist", "road", "sidewalk", "building", "fence",
+    "other-structure", "vegetation", "trunk", "terrain", "pole", "traffic-sign",
+)  # fmt: skip
+_KITTI_IDS = (10, 11, 30, 31, 40, 48, 50, 51, 52, 70, 71, 72, 80, 81)
+_MOVING = {252: 10, 253: 31, 254: 30}
+_LABEL_LUT = np.full(260, -1, np.int32)
+_LABEL_LUT[list(_KITTI_IDS)] = np.arange(len(_KITTI_IDS))
+_LABEL_LUT[list(_MOVING)] = [_KITTI_IDS.index(v) for v in _MOVING.values()]
+
+NET_FORMAT = "gloam-jax-net"
+SHIPPED_NET = Path(__file__).resolve().parent.parent / "data" / "net_default.npz"
+_RANGE_SCALE = 50.0  # m
+_HEIGHT_SCALE = 3.0  # m
+
+
+def class_index(labels: np.ndarray) -> np.ndarray:
+    """Training class (N,) int32 of SemanticKITTI ids (N,); -1 for unlabeled and unknown."""
+    labels = np.asarray(labels).astype(np.int64) & 0xFFFF
+    return np.where(labels < len(_LABEL_LUT), _LABEL_LUT[np.minimum(labels, 259)], -1)
+
+
+@dataclasses.dataclass(frozen=True)
+class NetConfig:
+    """Hyperparameters that set the network's shapes and its host-side graph."""
+
+    voxel_size: float = 0.3  # m
+    k: int = 16  # neighbours per point, both levels
+    ratio: int = 4  # level-0 voxels per level-1 point
+    widths: tuple[int, int, int] = (8, 32, 64)  # stem, level 0, level 1
+    embed: int = 32
+    num_classes: int = len(CLASSES)
+
+
+class NetInputs(NamedTuple):
+    """One padded scan: xyz (N0, 3), inputs (N0, 3), nbr0 (N0, K), sub (N1,), nbr1 (N1, K)
+    and up (N0,); indices int32 into level 0 (nbr0, sub) or level 1 (nbr1, up)."""
+
+    xyz: np.ndarray | jax.Array
+    inputs: np.ndarray | jax.Array
+    nbr0: np.ndarray | jax.Array
+    sub: np.ndarray | jax.Array
+    nbr1: np.ndarray | jax.Array
+    up: np.ndarray | jax.Array
+
+
+class Dense(eqx.Module):
+    """``x @ weight + bias`` over any leading axes: (..., n_in) -> (..., n_out)."""
+
+    weight: jax.Array
+    bias: jax.Array
+
+    def __init__(self, n_in: int, n_out: int, *, key: jax.Array) -> None:
+        # He initialisation: every Dense but the classifier feeds a ReLU.
+        self.weight = jax.random.normal(key, (n_in, n_out)) * np.sqrt(2.0 / n_in)
+        self.bias = jnp.zeros(n_out)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return x @ self.weight + self.bias
+
+
+class LocalAggregation(eqx.Module):
+    """Local spatial encoding + attentive pooling (RandLA-Net): features (N, c_in) at points
+    xyz (N, 3) with neighbours (N, K) -> (N, c_out)."""
+
+    position: Dense
+    feature: Dense
+    score: Dense
+    out: Dense
+
+    def __init__(self, c_in: int, c_out: int, *, key: jax.Array) -> None:
+        k1, k2, k3, k4 = jax.random.split(key, 4)
+        half = c_out // 2
+        self.position = Dense(4, half, key=k1)
+        self.feature = Dense(c_in, c_out - half, key=k2)
+        self.score = Dense(c_out, c_out, key=k3)
+        self.out = Dense(c_out, c_out, key=k4)
+
+    def __call__(self, h: jax.Array, xyz: jax.Array, nbr: jax.Array) -> jax.Array:
+        rel = xyz[nbr] - xyz[:, None, :]  # (N, K, 3)
+        dist = jnp.sqrt(jnp.sum(rel * rel, axis=-1, keepdims=True))
+        enc = jax.nn.relu(self.position(jnp.concatenate([rel, dist], axis=-1)))
+        # Transform before gathering: N rows instead of N * K.
+        f = jax.nn.relu(self.feature(h))[nbr]
+        fh = jnp.concatenate([enc, f], axis=-1)  # (N, K, c_out)
+        attention = jax.nn.softmax(self.score(fh), axis=1)  # per channel, over neighbours
+        return jax.nn.relu(self.out(jnp.sum(attention * fh, axis=1)))
+
+
+class SegNet(eqx.Module):
+    """The network: :class:`NetInputs` of one scan -> embedding (N0, embed), logits (N0, C)."""
+
+    stem: Dense
+    local0: LocalAggregation
+    local1: LocalAggregation
+    decode: Dense
+    classify: Dense
+    config: NetConfig = eqx.field(static=True)
+
+    def __init__(self, config: NetConfig = NetConfig(), *, key: jax.Array) -> None:
+        k = jax.random.split(key, 5)
+        w0, w1, w2 = config.widths
+        self.config = config
+        self.stem = Dense(3, w0, key=k[0])
+        self.local0 = LocalAggregation(w0, w1, key=k[1])
+        self.local1 = LocalAggregation(w1, w2, key=k[2])
+        self.decode = Dense(w1 + w2, config.embed, key=k[3])
+        self.classify = Dense(config.embed, config.num_classes, key=k[4])
+
+    def __call__(self, x: NetInputs) -> tuple[jax.Array, jax.Array]:
+        h0 = self.local0(jax.nn.relu(self.stem(x.inputs)), x.xyz, x.nbr0)
+        h1 = jnp.max(h0[x.nbr0[x.sub]], axis=1)  # each sampled voxel pools its neighbourhood
+        h1 = self.local1(h1, x.xyz[x.sub], x.nbr1)
+        embedding = jax.nn.relu(self.decode(jnp.concatenate([h0, h1[x.up]], axis=-1)))
+        return embedding, self.classify(embedding)
+
+
+def voxelize(scan: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel means of a finite scan (N, 3+): xyz (M, 3) float64, intensity (M,) (0 without
+    a fourth column) and each point's voxel (N,)."""
+    xyz = np.asarray(scan[:, :3], np.float64)
+    inverse, counts = pc.voxel_index(xyz, voxel_size)
+    cols = [xyz[:, i] for i in range(3)]
+    if scan.shape[1] > 3:
+        cols.append(np.nan_to_num(np.asarray(scan[:, 3], np.float64), posinf=0.0, neginf=0.0))
+    sums = np.stack([np.bincount(inverse, weights=c, minlength=len(counts)) for c in cols], 1)
+    means = sums / counts[:, None]
+    intensity = means[:, 3] if scan.shape[1] > 3 else np.zeros(len(counts))
+    return means[:, :3], intensity, inverse
+
+
+def _knn(tree: cKDTree, queries: np.ndarray, k: int) -> np.ndarray:
+    """Indices (Q, k) of the k nearest tree points; short clouds repeat the nearest."""
+    k_eff = min(k, tree.n)
+    _, idx = tree.query(queries, k=k_eff, workers=-1)
+    idx = idx.reshape(len(queries), k_eff)
+    if k_eff < k:
+        idx = np.concatenate([idx, np.repeat(idx[:, :1], k - k_eff, axis=1)], axis=1)
+    return idx.astype(np.int32)
+
+
+def sample_level1(m: int, ratio: int) -> np.ndarray:
+    """Level-1 voxels (ceil(m / ratio),) sorted: a fixed-seed random sample of m voxels."""
+    n1 = -(-m // ratio)
+    return np.sort(np.random.default_rng(0).choice(m, n1, replace=False)).astype(np.int32)
+
+
+def build_inputs(
+    xyz: np.ndarray, intensity: np.ndarray, config: NetConfig, size: int | None = None
+) -> NetInputs:
+    """The network's inputs for M >= 1 voxels xyz (M, 3), intensity (M,), level 0 padded to
+    ``size`` rows (default: M's bucket) and level 1 to ``ceil(size / ratio)``."""
+    m = len(xyz)
+    size = pc.bucket_size(m) if size is None else size
+    sub = sample_level1(m, config.ratio)
+    nbr0 = _knn(cKDTree(xyz), xyz, config.k)
+    tree1 = cKDTree(xyz[sub])
+    nbr1 = _knn(tree1, xyz[sub], config.k)
+    up = _knn(tree1, xyz, 1)[:, 0]
+    features = np.stack(
+        [np.linalg.norm(xyz, axis=1) / _RANGE_SCALE, xyz[:, 2] / _HEIGHT_SCALE, intensity], 1
+    )
+    n1 = -(-size // config.ratio)
+    # Padded rows point at themselves, so real rows never read them.
+    pad0 = np.arange(m, size, dtype=np.int32)
+    pad1 = np.arange(len(sub), n1, dtype=np.int32)
+    return NetInputs(
+        xyz=pc.pad(xyz.astype(np.float32), size)[0],
+        inputs=pc.pad(features.astype(np.float32), size)[0],
+        nbr0=np.concatenate([nbr0, np.repeat(pad0[:, None], config.k, 1)]),
+        sub=np.concatenate([sub, np.zeros(len(pad1), np.int32)]),
+        nbr1=np.concatenate([nbr1, np.repeat(pad1[:, None], config.k, 1)]),
+        up=np.concatenate([up, np.zeros(len(pad0), np.int32)]),
+    )
+
+
+@eqx.filter_jit
+def _forward(net: SegNet, x: NetInputs) -> tuple[jax.Array, jax.Array]:
+    return net(x)
+
+
+def run_scan(net: SegNet, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Embedding (N, embed) float32 and logits (N, C) of a raw scan (N, 3+), row-aligned;
+    rows with non-finite coordinates get zeros."""
+    finite = np.all(np.isfinite(scan[:, :3]), axis=1)
+    c = net.config
+    embedding = np.zeros((len(scan), c.embed), np.float32)
+    logits = np.zeros((len(scan), c.num_classes), np.float32)
+    if not finite.any():
+        return embedding, logits
+    xyz, intensity, inverse = voxelize(scan[finite], c.voxel_size)
+    e, lg = _forward(net, build_inputs(xyz, intensity, c))
+    embedding[finite] = np.asarray(e)[: len(xyz)][inverse]
+    logits[finite] = np.asarray(lg)[: len(xyz)][inverse]
+    return embedding, logits
+
+
+def _named_leaves(net: SegNet) -> dict[str, np.ndarray]:
+    leaves = jax.tree_util.tree_flatten_with_path(eqx.filter(net, eqx.is_array))[0]
+    return {jax.tree_util.keystr(path): np.asarray(v) for path, v in leaves}
+
+
+def save_net(path: str | os.PathLike[str], net: SegNet, provenance: dict[str, Any]) -> None:
+    """Write the weights, the :class:`NetConfig` and ``provenance`` as one ``.npz``, atomically."""
+    metadata = {
+        "format": NET_FORMAT,
+        "config": dataclasses.asdict(net.config),
+        "provenance": provenance,
+    }
+    arrays = {f"w{i}": v for i, v in enumerate(_named_leaves(net).values())}
+    write_npz(path, metadata=np.array(json.dumps(metadata)), **arrays)
+
+
+def load_net(path: str | os.PathLike[str]) -> tuple[SegNet, dict[str, Any]]:
+    """The network and its provenance from a file written by :func:`save_net`."""
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            metadata = json.loads(str(f["metadata"]))
+            arrays = {k: f[k] for k in f.files if k != "metadata"}
+    except (OSError, ValueError, KeyError, EOFError) as e:
+        raise InputError(path, f"cannot read network weights ({e})") from None
+    if metadata.get("format") != NET_FORMAT:
+        raise InputError(path, f"not a {NET_FORMAT} file")
+    try:
+        cfg = metadata["config"]
+        config = NetConfig(**{**cfg, "widths": tuple(cfg["widths"])})
+    except (KeyError, TypeError) as e:
+        raise InputError(path, f"bad network config ({e})") from None
+    skeleton = SegNet(config, key=jax.random.key(0))
+    params, static = eqx.partition(skeleton, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(params)
+    if len(arrays) != len(leaves):
+        raise InputError(path, f"has {len(arrays)} weight arrays, the network needs {len(leaves)}")
+    loaded = [arrays[f"w{i}"] for i in range(len(leaves))]
+    for i, (a, b) in enumerate(zip(loaded, leaves, strict=True)):
+        if a.shape != b.shape:
+            raise InputError(path, f"weight w{i} has shape {a.shape}, expected {b.shape}")
+    params = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(a, jnp.float32) for a in loaded])
+    return eqx.combine(params, static), metadata.get("provenance", {})
+
+
+class NetBackbone:
+    """Per-point embeddings of a trained :class:`SegNet`: raw scan (N, 3+) -> (N, embed).
+
+    ``weights``: a file from ``gloam train-backbone``, or ``"default"``, the network shipped
+    in ``gloam_jax/data/net_default.npz``.
+    """
+
+    name = "net"
+
+    def __init__(self, weights: str | os.PathLike[str] = "default") -> None:
+        self.weights = str(weights)
+        self.net, self.provenance = load_net(SHIPPED_NET if self.weights == "default" else weights)
+
+    @property
+    def dim(self) -> int:
+        return self.net.config.embed
+
+    def options(self) -> dict[str, Any]:
+        """Keyword arguments that rebuild this backbone (JSON-serialisable)."""
+        return {"weights": self.weights}
+
+    def __call__(
+        self,
+        scan: np.ndarray,
+        *,
+        path: str | os.PathLike[str] | None = None,
+        frame: int | None = None,
+    ) -> np.ndarray:
+        """Features (N, embed) float32 of a raw scan (N, 3+) ``x y z [intensity]``."""
+        scan = np.asarray(scan)
+        if scan.ndim != 2 or scan.shape[1] < 3:
+            raise InputError(path, f"expected an (N, 3+) scan, got shape {scan.shape}")
+        return run_scan(self.net, scan)[0]

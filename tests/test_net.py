@@ -1,0 +1,186 @@
+"""The ``net`` backbone: its network, training step, weight files and use inside ``gloam run``."""
+
+import json
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from typer.testing import CliRunner
+
+from gloam_jax.cli import app
+from gloam_jax.errors import InputError
+from gloam_jax.features import fit_pca, get_backbone
+from gloam_jax.features.net import (
+    CLASSES,
+    NetConfig,
+    SegNet,
+    class_index,
+    load_net,
+    run_scan,
+    save_net,
+)
+from gloam_jax.models import init_model, save_model
+from gloam_jax.training.segmentation import (
+    LabelledScan,
+    SegmentationConfig,
+    class_weights,
+    draw_batch,
+    make_optimizer,
+    make_step,
+)
+
+SMALL = NetConfig(k=8)
+
+
+def toy_scan(seed: int = 0, n: int = 3000) -> tuple[np.ndarray, np.ndarray]:
+    """Road plane, a wall and a pole: points (n, 4) and SemanticKITTI labels (n,)."""
+    rng = np.random.default_rng(seed)
+    a, b, c = n // 2, n // 3, n - n // 2 - n // 3
+    road = np.c_[rng.uniform(-8, 8, (a, 2)), rng.normal(-1.7, 0.01, a)]
+    wall = np.c_[rng.uniform(-8, 8, b), np.full(b, 5.0), rng.uniform(-1.7, 4, b)]
+    pole = np.c_[rng.normal(3, 0.05, (c, 2)), rng.uniform(-1.7, 3, c)]
+    xyz = np.concatenate([road, wall, pole])
+    labels = np.repeat(np.array([40, 50, 80], np.uint16), [a, b, c])
+    return np.c_[xyz, rng.uniform(0, 1, n)].astype(np.float32), labels
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory):
+    path = tmp_path_factory.mktemp("net") / "net.npz"
+    save_net(path, SegNet(SMALL, key=jax.random.key(1)), {"note": "untrained"})
+    return path
+
+
+def test_class_index_folds_moving_objects_and_drops_unknown_ids():
+    ids = class_index(np.array([0, 10, 252, 40, 81, 99, 1 << 16 | 50, 254], np.uint32))
+    assert [CLASSES[i] if i >= 0 else None for i in ids] == [
+        None, "car", "car", "road", "traffic-sign", None, "building", "person",
+    ]  # fmt: skip
+
+
+def test_backbone_shapes_rows_and_permutation_invariance(weights):
+    backbone = get_backbone("net", weights=str(weights))
+    assert get_backbone(backbone.name, **backbone.options()).weights == str(weights)
+    scan, _ = toy_scan()
+    scan[5] = np.nan  # a bad row keeps its place, with zero features
+    f = backbone(scan)
+    assert f.shape == (len(scan), backbone.dim) == (len(scan), 32) and f.dtype == np.float32
+    assert np.all(f[5] == 0) and np.all(np.isfinite(f)) and f.std(axis=0).max() > 0
+    perm = np.random.default_rng(3).permutation(len(scan))
+    np.testing.assert_allclose(backbone(scan[perm]), f[perm], atol=1e-4, rtol=1e-4)
+    # Three columns (no intensity) and a cloud smaller than k work too.
+    assert backbone(scan[:5, :3]).shape == (5, 32)
+    with pytest.raises(InputError, match="expected an"):
+        backbone(scan[:, :2])
+
+
+def test_training_step_overfits_a_tiny_set():
+    scan, labels = toy_scan()
+    from gloam_jax.features.net import voxelize
+
+    xyz, intensity, inverse = voxelize(scan, SMALL.voxel_size)
+    votes = np.zeros((len(xyz), len(CLASSES)), int)
+    np.add.at(votes, (inverse, class_index(labels)), 1)
+    scans = [LabelledScan(xyz, intensity, votes.argmax(1).astype(np.int32), cKDTree(xyz))]
+    cfg = SegmentationConfig(data="-", train=("00",), test=("01",), steps=60, batch=2, crop=512,
+                             learning_rate=1e-2, net=SMALL)  # fmt: skip
+    w = class_weights(scans)
+    assert w[CLASSES.index("car")] == 0 and np.isclose(w[w > 0].mean(), 1.0)
+    params, static = eqx.partition(SegNet(SMALL, key=jax.random.key(0)), eqx.is_array)
+    optimizer = make_optimizer(cfg)
+    state, update, losses = optimizer.init(params), make_step(optimizer), []
+    for step in range(cfg.steps):
+        x, y = draw_batch(scans, cfg, step)
+        assert x.nbr0.shape == (2, 512, SMALL.k) and y.shape == (2, 512)
+        params, state, loss = update(params, static, state, x, y, w)
+        losses.append(float(loss))
+    assert np.mean(losses[-10:]) < 0.3 * np.mean(losses[:5])
+    _, logits = run_scan(eqx.combine(params, static), scan)
+    accuracy = np.mean(logits.argmax(1) == class_index(labels))
+    assert accuracy > 0.9  # road alone would be 0.5
+
+
+def test_weights_round_trip_and_bad_files(tmp_path, weights):
+    net, provenance = load_net(weights)
+    assert provenance == {"note": "untrained"} and net.config == SMALL
+    save_net(tmp_path / "again.npz", net, provenance)
+    again, _ = load_net(tmp_path / "again.npz")
+    scan, _ = toy_scan(1, 500)
+    for a, b in zip(run_scan(net, scan), run_scan(again, scan), strict=True):
+        np.testing.assert_array_equal(a, b)
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="cannot read network weights"):
+        load_net(tmp_path / "junk.npz")
+    np.savez(tmp_path / "other.npz", metadata=np.array(json.dumps({"format": "x"})))
+    with pytest.raises(InputError, match="not a gloam-jax-net file"):
+        load_net(tmp_path / "other.npz")
+    with pytest.raises(InputError, match="unknown backbone"):
+        get_backbone("nett")
+
+
+def test_net_backbone_inside_gloam_run(tmp_path, weights):
+    # A folder of four scans of one scene, the sensor moving 0.3 m along x per scan.
+    scene, _ = toy_scan(2, 6000)
+    side = scene[:1500].copy()
+    side[:, :3] = side[:, [1, 0, 2]] * [1.0, 0.0, 1.0] + [-7.0, 0.0, 0.0]  # a wall across x
+    side[:, 1] = np.random.default_rng(4).uniform(-8, 8, len(side))
+    scene = np.concatenate([scene, side])
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for i in range(4):
+        np.save(folder / f"{i:06d}.npy", scene - np.float32([0.3 * i, 0, 0, 0]))
+    backbone = get_backbone("net", weights=str(weights))
+    pca = fit_pca([backbone(np.load(folder / f"{i:06d}.npy")) for i in (0, 3)])
+    model = init_model(jax.random.PRNGKey(0), pca, backbone="net",
+                       backbone_options=backbone.options(), init="gicp")  # fmt: skip
+    save_model(tmp_path / "model.npz", model)
+    result = CliRunner().invoke(app, [
+        "run", str(folder), "--method", "gloam", "--weights", str(tmp_path / "model.npz"),
+        "--out", str(tmp_path / "results"), "--no-compilation-cache",
+    ])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    poses = np.loadtxt(tmp_path / "results" / "latest" / "scans_poses_lidar_kitti.txt")
+    assert poses.shape == (4, 12)
+    # An untrained model that starts at plain GICP tracks the 0.3 m steps.
+    np.testing.assert_allclose(poses[:, [3, 7, 11]], np.c_[0.3 * np.arange(4), [[0, 0]] * 4],
+                               atol=0.03)  # fmt: skip
+
+
+def test_train_backbone_resumes_to_the_same_weights(tmp_path):
+    from gloam_jax.io.kitti import write_labels
+    from gloam_jax.training.segmentation import train_segmentation
+
+    root = tmp_path / "data"
+    for seq, seeds in (("00", (0, 1)), ("01", (2,))):
+        for i, seed in enumerate(seeds):
+            scan, labels = toy_scan(seed, 1500)
+            (root / "sequences" / seq / "velodyne").mkdir(parents=True, exist_ok=True)
+            scan.tofile(root / "sequences" / seq / "velodyne" / f"{i:06d}.bin")
+            write_labels(root / "sequences" / seq / "labels" / f"{i:06d}.label", labels)
+    args = ["train-backbone", str(root), "--train", "00", "--test", "01", "--steps", "4",
+            "--batch", "2", "--crop", "256", "--eval-every", "2"]  # fmt: skip
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "a")])
+    assert result.exit_code == 0, result.output
+    assert "held-out mIoU" in result.output and "road" in result.output
+    history = json.loads((tmp_path / "a" / "history.json").read_text())
+    assert [h["step"] for h in history] == [2, 4] and (tmp_path / "a" / "curve.png").is_file()
+
+    cfg = SegmentationConfig(data=str(root), train=("00",), test=("01",), steps=4, batch=2,
+                             crop=256, eval_every=2)  # fmt: skip
+
+    def stop_after_3(label, done, total, **fields):
+        if label == "training steps" and done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_segmentation(cfg, tmp_path / "b", stop_after_3)
+    net, provenance = train_segmentation(cfg, tmp_path / "b")
+    first, _ = load_net(tmp_path / "a" / "net.npz")
+    for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(net), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+    assert provenance["steps"] == 4 and set(provenance["test"]["iou"]) == {"road", "building",
+                                                                           "pole"}  # fmt: skip
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "b"), "--crop", "300"])
+    assert result.exit_code == 2 and "started with other crop" in result.output
