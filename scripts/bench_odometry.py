@@ -41,13 +41,12 @@ class _CompileCounter(logging.Handler):
             self.count += 1
 
 
-def run_ours(seq: io.KittiSequence, n: int, config_path: Path, weights: Path | None, counter):
+def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counter):
+    """This project's odometry with ``config`` (an OdometryConfig), frame by frame."""
     import dataclasses
 
-    from gloam_jax.config import load_config
     from gloam_jax.odometry import Odometry
 
-    config = load_config(config_path)
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
     odometry = Odometry(config)
@@ -160,7 +159,9 @@ def main() -> None:
             elif method == "kiss-icp":
                 poses, ms, extra = run_kiss(seq, n, args.threads)
             else:
-                config = args.configs / f"{method}.yaml"
+                from gloam_jax.config import load_config
+
+                config = load_config(args.configs / f"{method}.yaml")
                 poses, ms, extra = run_ours(seq, n, config, args.weights, counter)
             est = io.lidar_to_cam_poses(np.linalg.inv(poses[0]) @ poses, seq.Tr_cam_velo)
             rte = metrics.kitti_rte(gt, est)

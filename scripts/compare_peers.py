@@ -1,0 +1,207 @@
+"""Our GICP against small_gicp, KISS-ICP and GenZ-ICP on the same raw scans, in one run.
+
+    python scripts/compare_peers.py data/val_worlds --sequences 201,202 --out docs/peers_val \\
+        [--methods gicp,small_gicp,kiss-icp,genz-icp] [--frames 100] \\
+        [--variant 'voxel025={preprocess: {downsampling_resolution: 0.25}}']
+
+Every method gets the scans as a raw KITTI drive gives them: motion-distorted where the world
+was simulated so, and **without per-point times** (the simulator's ``timestamps/`` are not
+read), so each method deskews, if at all, from the azimuth. ``gicp`` is
+``configs/gicp.yaml`` through :func:`bench_odometry.run_ours` (deskew ``auto`` -> azimuth on
+the KITTI layout); ``--variant NAME=YAML`` adds a run of ``gicp.yaml`` with those settings
+replaced (one candidate change at a time). small_gicp and KISS-ICP run as in
+``bench_odometry.py``; GenZ-ICP with its default configuration and deskew on (azimuth times in
+[0, 1], like KISS-ICP).
+
+Scores: the devkit's t_err (%) and r_err (deg/100 m) over segments of 10-80 % of each window's
+path (``make_tables.window_rte``: the windows are shorter than 100-800 m), and the median
+milliseconds per frame. ``OUT.json`` holds every run and is rewritten atomically after each,
+so a killed run continues where it stopped; ``OUT.md`` is the table with the command and
+commit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+import yaml
+from bench_odometry import _CompileCounter, run_kiss, run_ours, run_small_gicp
+from make_tables import commit, window_rte
+
+from gloam_jax import io
+from gloam_jax.config import build_dataclass, load_config
+
+PEERS = ("small_gicp", "kiss-icp", "genz-icp")
+
+
+class RawScans:
+    """A KITTI sequence seen as raw KITTI gives it: scans and frame times, no per-point times."""
+
+    def __init__(self, seq: io.KittiSequence) -> None:
+        self.seq = seq
+        self.times = seq.times
+
+    def scan(self, i: int) -> np.ndarray:
+        return self.seq.scan(i)
+
+    def point_times(self, i: int) -> None:
+        return None
+
+
+def run_genz(seq: RawScans, n: int, threads: int):
+    """GenZ-ICP, default configuration, deskewed with azimuth times in [0, 1]."""
+    from genz_icp.config import GenZConfig
+    from genz_icp.genz_icp import GenZICP
+
+    config = GenZConfig()
+    config.data.deskew = True
+    config.registration.max_num_threads = threads
+    odometry = GenZICP(config)
+    poses, ms = [], []
+    for i in range(n):
+        scan = seq.scan(i)[:, :3].astype(np.float64)
+        u = 0.5 * (1.0 - np.arctan2(scan[:, 1], scan[:, 0]) / np.pi)
+        t0 = time.perf_counter()
+        odometry.register_frame(scan, u)
+        ms.append(1e3 * (time.perf_counter() - t0))
+        poses.append(odometry.last_pose.copy())
+    return np.stack(poses), ms, {}
+
+
+def parse_variants(items: list[str]) -> dict[str, dict]:
+    """``NAME=YAML`` -> {NAME: settings mapping}; a bad one is a SystemExit line."""
+    variants = {}
+    for item in items:
+        name, _, text = item.partition("=")
+        values = yaml.safe_load(text) if text else None
+        if not name or not isinstance(values, dict):
+            raise SystemExit(f"--variant {item!r}: expected NAME=YAML mapping")
+        variants[name] = values
+    return variants
+
+
+def score(seq: io.KittiSequence, poses: np.ndarray, ms: list[float], extra: dict) -> dict:
+    est = io.lidar_to_cam_poses(np.linalg.inv(poses[0]) @ poses, seq.Tr_cam_velo)
+    rte = window_rte(seq.gt_poses_cam[: len(est)], est)
+    return {
+        "t_err": rte["t_err"],
+        "r_err": rte["r_err"],
+        "median_ms_per_frame": float(np.median(ms)),
+        "frames": len(est),
+        **extra,
+    }
+
+
+def world_label(data: Path, name: str) -> str:
+    path = data / "sequences" / name / "world.json"
+    if not path.is_file():
+        return name
+    w = json.loads(path.read_text())
+    distortion = "distorted" if w.get("motion_distortion") else "undistorted"
+    return f"{name} {w['family']} {w['sensor']['name']} {distortion}"
+
+
+def table(results: dict, data: Path, methods: list[str]) -> str:
+    worlds = sorted({k.split("/")[0] for k in results})
+    head = ["world", *methods]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for w in worlds:
+        cells = []
+        for m in methods:
+            r = results.get(f"{w}/{m}")
+            cells.append(
+                "-" if r is None
+                else f"{r['t_err']:.3f} / {r['r_err']:.3f} / {r['median_ms_per_frame']:.0f}"
+            )  # fmt: skip
+        lines.append(f"| {world_label(data, w)} | " + " | ".join(cells) + " |")
+    means = []
+    for m in methods:
+        rows = [results[f"{w}/{m}"] for w in worlds if f"{w}/{m}" in results]
+        full = len(rows) == len(worlds)
+        means.append(
+            f"{np.mean([r['t_err'] for r in rows]):.3f} / {np.mean([r['r_err'] for r in rows]):.3f}"
+            f" / {np.mean([r['median_ms_per_frame'] for r in rows]):.0f}"
+            if full
+            else "-"
+        )
+    lines.append("| mean | " + " | ".join(means) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("data", type=Path)
+    parser.add_argument("--sequences", required=True, help="comma-separated ids")
+    parser.add_argument("--frames", type=int, default=None)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--methods", default="gicp," + ",".join(PEERS))
+    parser.add_argument("--variant", action="append", default=[], help="NAME=YAML over gicp.yaml")
+    parser.add_argument("--out", type=Path, required=True, help="writes OUT.json and OUT.md")
+    args = parser.parse_args()
+    variants = parse_variants(args.variant)
+    methods = [*args.methods.split(","), *variants]
+
+    import jax
+
+    counter = _CompileCounter()
+    logging.getLogger("jax").addHandler(counter)
+    jax.config.update("jax_log_compiles", True)
+    logging.getLogger("jax").setLevel(logging.WARNING)
+    os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+
+    json_path, md_path = args.out.with_suffix(".json"), args.out.with_suffix(".md")
+    saved = json.loads(json_path.read_text()) if json_path.exists() else {}
+    results = saved.get("results", {})
+    base = load_config("gicp")
+    for name in args.sequences.split(","):
+        seq = io.KittiSequence(args.data, name)
+        raw = RawScans(seq)
+        n = len(seq) if args.frames is None else min(args.frames, len(seq))
+        for method in methods:
+            key = f"{name}/{method}"
+            if key in results:  # resume: keep what an earlier run measured
+                continue
+            if method == "small_gicp":
+                out = run_small_gicp(raw, n, args.threads)
+            elif method == "kiss-icp":
+                out = run_kiss(raw, n, args.threads)
+            elif method == "genz-icp":
+                out = run_genz(raw, n, args.threads)
+            elif method == "gicp":
+                out = run_ours(raw, n, base, None, counter)
+            elif method in variants:
+                config = build_dataclass(type(base), variants[method], method, base=base)
+                out = run_ours(raw, n, config, None, counter)
+            else:
+                raise SystemExit(f"unknown method {method!r}")
+            results[key] = score(seq, *out)
+            print(key, json.dumps(results[key]), flush=True)
+            record = {
+                "command": "python " + " ".join(sys.argv),
+                "commit": commit(),
+                "date": datetime.now(UTC).isoformat(timespec="seconds"),
+                "variants": variants,
+                "results": results,
+            }
+            io.write_atomic(json_path, json.dumps(record, indent=2))
+    text = table(results, args.data, methods)
+    print(text)
+    header = (
+        f"Measured by `python {' '.join(sys.argv)}` at `{commit()}`, "
+        f"{datetime.now(UTC):%Y-%m-%d}. Cells: t_err (%) / r_err (deg/100 m) / median ms "
+        "per frame, devkit rule over 10-80 % of each window's path; raw scans without "
+        "per-point times.\n\n"
+    )
+    io.write_atomic(md_path, header + text + "\n")
+
+
+if __name__ == "__main__":
+    main()
