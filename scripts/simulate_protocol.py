@@ -1,12 +1,19 @@
-"""Simulate the training/test protocol: one window per KITTI sequence 00-10, in the KITTI
-layout, along the real ground-truth trajectories (see gloam_jax.training.protocol).
+"""Simulate the training/test protocol in the KITTI layout, along the real ground-truth
+trajectories (see gloam_jax.training.protocol).
+
+Without --split: one window per KITTI sequence 00-10, in a scene style like the sequence's
+(ids 31-39 are second windows of the training sequences, EXTRA_TRAINING_WINDOWS):
 
     python scripts/simulate_protocol.py --out data/protocol [--frames 120] [--sequences 01,03]
     python scripts/simulate_protocol.py --out data/protocol --sequences 31,33,35,37,39
 
-Ids 31-39 are second windows of the training sequences (EXTRA_TRAINING_WINDOWS).
+With --split train|val|test: that split's worlds (SPLITS), each a scene family, sensor,
+distortion and speed drawn from its id, recorded in sequences/NNN/world.json:
 
-Resumable: a sequence already complete is skipped, an interrupted one continues.
+    python scripts/simulate_protocol.py --out data/protocol2 --split val [--sequences 201,203]
+
+Resumable: a sequence already complete is skipped, an interrupted one continues (each file
+is written atomically).
 """
 
 from __future__ import annotations
@@ -19,23 +26,20 @@ from gloam_jax.simulate import simulate
 from gloam_jax.training.protocol import (
     DEFAULT_FRAMES,
     EXTRA_TRAINING_WINDOWS,
+    SPLITS,
     TEST_SEQUENCES,
     TRAIN_SEQUENCES,
     WINDOWS,
+    WORLD_FRAMES,
+    world_spec,
 )
 
 POSES = Path(__file__).resolve().parents[2] / "shared/data/kitti_gt_poses"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("data/protocol"))
-    parser.add_argument("--frames", type=int, default=DEFAULT_FRAMES)
-    parser.add_argument("--poses", type=Path, default=POSES, help="KITTI ground-truth poses")
-    parser.add_argument("--sequences", default=",".join(TRAIN_SEQUENCES + TEST_SEQUENCES))
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args()
-    for name in args.sequences.split(","):
+def simulate_windows(args: argparse.Namespace) -> None:
+    names = args.sequences or ",".join(TRAIN_SEQUENCES + TEST_SEQUENCES)
+    for name in names.split(","):
         kitti, window = EXTRA_TRAINING_WINDOWS.get(name, (name, WINDOWS.get(name)))
         if window is None:
             raise SystemExit(f"no protocol window for sequence {name!r}")
@@ -44,7 +48,7 @@ def main() -> None:
             args.out,
             trajectory=args.poses / f"{kitti}.txt",
             start=window.start,
-            frames=args.frames,
+            frames=args.frames or DEFAULT_FRAMES,
             style=window.style,
             seed=args.seed + int(name),
             sequence=name,
@@ -53,6 +57,48 @@ def main() -> None:
             f"{name} ({window.style}, from pose {window.start}): {time.perf_counter() - t0:.1f} s",
             flush=True,
         )
+
+
+def simulate_split(args: argparse.Namespace) -> None:
+    worlds = SPLITS[args.split]
+    if args.sequences:
+        wanted = args.sequences.split(",")
+        unknown = sorted(set(wanted) - {w.sequence for w in worlds})
+        if unknown:
+            raise SystemExit(f"not in the {args.split} split: {', '.join(unknown)}")
+        worlds = tuple(w for w in worlds if w.sequence in wanted)
+    for world in worlds:
+        spec = world_spec(world, args.frames or WORLD_FRAMES, args.seed)
+        t0 = time.perf_counter()
+        simulate(
+            args.out,
+            world=spec,
+            trajectory=args.poses / f"{world.trajectory}.txt",
+            sequence=world.sequence,
+        )
+        print(
+            f"{world.sequence} ({args.split}: {world.family}, {spec.sensor.name}, KITTI "
+            f"{world.trajectory} from pose {world.start}, {spec.speed_scale:g}x speed, "
+            f"distortion {'on' if spec.motion_distortion else 'off'}): "
+            f"{time.perf_counter() - t0:.1f} s",
+            flush=True,
+        )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=Path("data/protocol"))
+    parser.add_argument("--split", choices=tuple(SPLITS), help="simulate this split's worlds")
+    parser.add_argument("--frames", type=int, help=f"default {DEFAULT_FRAMES}, splits "
+                        f"{WORLD_FRAMES}")  # fmt: skip
+    parser.add_argument("--poses", type=Path, default=POSES, help="KITTI ground-truth poses")
+    parser.add_argument("--sequences", help="only these ids (comma-separated)")
+    parser.add_argument("--seed", type=int, default=0, help="added to every sequence's seed")
+    args = parser.parse_args()
+    if args.split is None:
+        simulate_windows(args)
+    else:
+        simulate_split(args)
 
 
 if __name__ == "__main__":

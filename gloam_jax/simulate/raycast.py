@@ -19,9 +19,6 @@ from gloam_jax.simulate.world import (
     GRID_RES,
     PATTERN_SLATS,
     PATTERN_WINDOWS,
-    ROAD,
-    SIDEWALK,
-    TERRAIN,
     Primitives,
     Scene,
 )
@@ -52,6 +49,7 @@ class GroundGrid(NamedTuple):
     origin: jax.Array  # (2,)
     fields: jax.Array  # (NX, NY, 2): base height, distance to the driven path
     params: jax.Array  # (3,) road half width, sidewalk width, curb height
+    labels: jax.Array  # (3,) int32 class of the road, the band beside it, the ground beyond
     z_range: jax.Array  # (2,) lowest and highest ground in the crop
 
 
@@ -250,7 +248,9 @@ def _ground_normal_and_label(p, g: GroundGrid):
     dist = _ground_fields(p[..., :2], g)[..., 1]
     road_half, sidewalk = g.params[0], g.params[1]
     label = jnp.where(
-        dist < road_half, ROAD, jnp.where(dist < road_half + sidewalk, SIDEWALK, TERRAIN)
+        dist < road_half,
+        g.labels[0],
+        jnp.where(dist < road_half + sidewalk, g.labels[1], g.labels[2]),
     )
     return n, label
 
@@ -405,4 +405,5 @@ def ground_window(scene: Scene, origin: np.ndarray, half_extent: float) -> Groun
         fields=np.stack([base, dist], axis=-1),
         params=np.array([g.road_half_width, g.sidewalk_width, g.curb_height], np.float32),
         z_range=np.array(z_range, np.float32),
+        labels=np.array(g.labels, np.int32),
     )

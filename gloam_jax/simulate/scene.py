@@ -1,20 +1,20 @@
-"""Procedural street scenes built around a trajectory: street styles and the layout of a scene.
+"""The parts of a procedural scene built around a trajectory, and how they are placed.
 
 A scene follows the driven path: a road with curbs and sidewalks, then buildings, hedges,
 fences and walls, guard rails, parked cars, poles and signs, trees and bushes, and moving road
-users, each placed so that it neither blocks the road nor overlaps another. The parts and their
-conventions are in :mod:`gloam_jax.simulate.world`.
+users, each placed so that it neither blocks the road nor overlaps another. Which parts a scene
+has, and in what order, is its family's (:mod:`gloam_jax.simulate.families`); the primitives
+and their conventions are in :mod:`gloam_jax.simulate.world`.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.spatial import cKDTree
 
 from gloam_jax.errors import InputError
+from gloam_jax.simulate.styles import STYLES, StyleParams
 from gloam_jax.simulate.trajectory import Trajectory
 from gloam_jax.simulate.world import (
     BUILDING,
@@ -28,79 +28,15 @@ from gloam_jax.simulate.world import (
     PATTERN_SLATS,
     PATTERN_WINDOWS,
     POLE,
+    ROAD,
+    SIDEWALK,
+    TERRAIN,
     TRAFFIC_SIGN,
     TRUNK,
     VEGETATION,
     Ground,
     PrimitiveList,
-    Scene,
 )
-
-
-@dataclass(frozen=True)
-class StyleParams:
-    road_half_width: tuple[float, float]
-    sidewalk_width: tuple[float, float]
-    curb_height: float
-    terrain_relief: float  # amplitude (m) of terrain undulation beyond the sidewalk
-    building_density: float  # fraction of frontage with buildings
-    building_setback: tuple[float, float]
-    building_height: tuple[float, float]
-    parked_car_prob: float
-    tree_spacing: float
-    pole_spacing: float
-    hedge_fence_prob: float
-    guard_rails: bool
-    actor_interval_s: float  # mean time between new moving road users
-
-
-STYLES: dict[str, StyleParams] = {
-    "urban": StyleParams(
-        (5.0, 6.5),
-        (2.5, 4.0),
-        0.14,
-        0.3,
-        0.85,
-        (0.0, 3.0),
-        (7.0, 24.0),
-        0.55,
-        14.0,
-        30.0,
-        0.5,
-        False,
-        2.5,
-    ),
-    "suburban": StyleParams(
-        (3.8, 4.8),
-        (1.5, 2.2),
-        0.11,
-        0.8,
-        0.45,
-        (6.0, 14.0),
-        (5.0, 9.0),
-        0.25,
-        9.0,
-        40.0,
-        0.8,
-        False,
-        4.0,
-    ),
-    "highway": StyleParams(
-        (9.0, 11.0),
-        (0.0, 0.0),
-        0.0,
-        1.5,
-        0.0,
-        (25.0, 40.0),
-        (6.0, 10.0),
-        0.0,
-        18.0,
-        60.0,
-        0.15,
-        True,
-        3.0,
-    ),
-}
 
 
 def smooth_field(rng: np.random.Generator, shape: tuple[int, int], cell: float) -> np.ndarray:
@@ -136,7 +72,7 @@ class _Path:
         return self.points[i], self.tangent[i], self.normal[i]
 
     def distance(self, xy: np.ndarray) -> np.ndarray:
-        return self.tree.query(xy, workers=-1)[0]
+        return self.tree.query(xy)[0]  # a few points: threads would cost more
 
 
 class _Occupancy:
@@ -169,7 +105,12 @@ def _footprint_points(xy: np.ndarray, half: np.ndarray, yaw: float) -> np.ndarra
     return xy + np.stack([c * u - s * v, s * u + c * v], axis=-1).reshape(-1, 2)
 
 
-class _SceneBuilder:
+class SceneBuilder:
+    """Lays out one scene along a trajectory: placement helpers and the parts streets share.
+
+    The families (:mod:`gloam_jax.simulate.families`) call the parts in their own order.
+    """
+
     def __init__(
         self,
         traj: Trajectory,
@@ -178,12 +119,14 @@ class _SceneBuilder:
         mount_height: float,
         dynamic: bool,
         detail: bool,
+        params: StyleParams | None = None,
     ) -> None:
         if style not in STYLES:
             raise InputError(
                 None, f"unknown scene style {style!r}; choose one of {', '.join(STYLES)}"
             )
-        self.traj, self.style, self.p = traj, style, STYLES[style]
+        self.traj, self.style = traj, style
+        self.p = STYLES[style] if params is None else params
         self.rng = np.random.default_rng(seed)
         self.path = _Path(traj, mount_height)
         self.dynamic, self.detail = dynamic, detail
@@ -191,6 +134,7 @@ class _SceneBuilder:
         self.sidewalk = float(self.rng.uniform(*self.p.sidewalk_width))
         self.edge = self.road_half + self.sidewalk  # where private ground starts
         self.occ = _Occupancy()
+        self.ground_labels = (ROAD, SIDEWALK, TERRAIN)  # road, the band beside it, beyond
         self.boxes, self.cyls, self.ells = PrimitiveList(), PrimitiveList(), PrimitiveList()
 
     # -- placement helpers ---------------------------------------------------------------
@@ -223,7 +167,7 @@ class _SceneBuilder:
         for side in (1, -1):
             s = rng.uniform(0, 10)
             while s < self.path.length:
-                width = rng.uniform(8.0, 24.0) if self.style == "urban" else rng.uniform(8, 14)
+                width = rng.uniform(*p.building_width)
                 if rng.random() > p.building_density:
                     s += rng.uniform(4.0, 14.0)
                     continue
@@ -248,7 +192,7 @@ class _SceneBuilder:
         z0 = self.ground_z(xy) - 0.3  # a little below grade so slopes leave no gap
         half = half + np.array([0, 0, 0.15])
         pattern = (0, 0, 0, 0)
-        if self.detail and rng.random() < 0.8:
+        if self.detail and rng.random() < self.p.facade_detail:
             pattern = (
                 PATTERN_WINDOWS,
                 rng.uniform(2.4, 3.6),
@@ -346,21 +290,7 @@ class _SceneBuilder:
                 crown = np.array([rng.uniform(1.5, 3.5)] * 2 + [rng.uniform(1.4, 3.0)])
                 placed = self._place(s, side, lateral, [trunk_r * 2, trunk_r * 2, 1], clearance=2.0)
                 if placed is not None:
-                    (xy, _), z = placed, self.ground_z(placed[0])
-                    self.cyls.add(
-                        [*xy, z + trunk_h / 2 - 0.1],
-                        [trunk_r, trunk_r, trunk_h / 2 + 0.1],
-                        0.0,
-                        TRUNK,
-                    )
-                    crown_z = z + trunk_h + 0.7 * crown[2]
-                    self.ells.add(
-                        [*xy, crown_z],
-                        crown,
-                        rng.uniform(0, np.pi),
-                        VEGETATION,
-                        porosity=rng.uniform(0.3, 0.6),
-                    )
+                    self.tree(placed[0], trunk_r, trunk_h, crown)
                 if self.style != "urban" and rng.random() < 0.5:  # a bush nearby
                     radii = np.array([rng.uniform(0.6, 1.5)] * 2 + [rng.uniform(0.5, 1.0)])
                     bush = self._place(
@@ -380,6 +310,20 @@ class _SceneBuilder:
                             porosity=0.25,
                         )
                 s += self.p.tree_spacing * rng.uniform(0.5, 1.5)
+
+    def tree(self, xy, trunk_r: float, trunk_h: float, crown: np.ndarray) -> None:
+        """A trunk (cylinder) under a porous crown (ellipsoid radii ``crown``), on the ground."""
+        rng, z = self.rng, self.ground_z(xy)
+        self.cyls.add(
+            [*xy, z + trunk_h / 2 - 0.1], [trunk_r, trunk_r, trunk_h / 2 + 0.1], 0.0, TRUNK
+        )
+        self.ells.add(
+            [*xy, z + trunk_h + 0.7 * crown[2]],
+            crown,
+            rng.uniform(0, np.pi),
+            VEGETATION,
+            porosity=rng.uniform(0.3, 0.6),
+        )
 
     def hedges_fences_walls(self) -> None:
         rng, p = self.rng, self.p
@@ -522,12 +466,17 @@ class _SceneBuilder:
         ii, jj = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
         xy = lo + GRID_RES * np.stack([ii.ravel(), jj.ravel()], axis=1)
         dist, nearest = self.path.tree.query(xy, workers=-1)
+        # Which side of the road: + left of the driving direction (for the cross slope).
+        side = np.sign(np.sum((xy - self.path.points[nearest, :2]) * self.path.normal[nearest], 1))
+        beyond = (side * np.maximum(dist - self.edge, 0.0)).reshape(shape)
         dist = dist.reshape(shape).astype(np.float32)
         road_z = self.path.points[nearest, 2].reshape(shape)
-        # Road bumps a few cm over a few metres; terrain relief grows away from the road.
-        bumps = 0.02 * smooth_field(rng, shape, 6.0 / GRID_RES)
+        # Road bumps a few cm over a few metres; terrain relief grows away from the road, and
+        # the terrain rises on one side and falls on the other (a road cut into a hillside).
+        bumps = self.p.ground_roughness * smooth_field(rng, shape, 6.0 / GRID_RES)
         relief = self.p.terrain_relief * smooth_field(rng, shape, 25.0 / GRID_RES)
         away = np.clip((dist - self.edge - 1.0) / 12.0, 0.0, 1.0)
+        relief = relief + self.p.cross_slope * beyond
         # The nearest road height jumps where two stretches of road at different heights are
         # equally near (inside corners, slopes). Smoothing removes the step; it leaves the
         # height under the path itself unchanged (linear along it, constant across it), and
@@ -542,31 +491,5 @@ class _SceneBuilder:
             self.road_half,
             self.sidewalk,
             self.p.curb_height if self.sidewalk > 0 else 0.0,
+            self.ground_labels,
         )
-
-
-def build_scene(
-    traj: Trajectory,
-    style: str = "urban",
-    seed: int = 0,
-    *,
-    mount_height: float = 1.73,
-    dynamic: bool = True,
-    detail: bool = True,
-) -> Scene:
-    """Procedural scene around ``traj``. ``dynamic``: moving road users; ``detail``: recessed
-    windows, ledges and annexes (non-planar detail)."""
-    b = _SceneBuilder(traj, style, seed, mount_height, dynamic, detail)
-    ground = b.ground()
-    # Larger structures first, so smaller ones fill the gaps they leave.
-    b.buildings()
-    b.hedges_fences_walls()
-    b.guard_rails()
-    b.parked_cars()
-    b.poles_and_signs()
-    b.trees_and_bushes()
-    b.moving_actors()
-    boxes = b.boxes.build(0)
-    cyls = b.cyls.build(len(boxes))
-    ells = b.ells.build(len(boxes) + len(cyls))
-    return Scene(style, ground, boxes, cyls, ells)

@@ -32,6 +32,7 @@ class SensorModel:
     elevation_bias_deg: float = 0.22  # systematic: rays leave this much higher than reported
     beam_range_offset_std: float = 0.015  # per-beam constant range offset, drawn from the seed
     dropout: float = 0.02  # random loss of returns
+    beam_jitter_deg: float = 0.0  # 1-sigma angular error of each shot, elevation and azimuth
     intensity_noise: float = 0.02  # 1-sigma, on intensities in [0, 1]
     mixed_pixel_prob: float = 0.3  # chance a depth-edge return lands between the two surfaces
     mixed_pixel_gap: float = 0.5  # depth jump (m) that counts as an edge
@@ -54,10 +55,15 @@ class SensorModel:
         u = (np.arange(self.num_columns) + 0.5) / self.num_columns
         return np.pi * (1.0 - 2.0 * u)
 
-    def directions(self, elevation_offset_deg: float = 0.0) -> np.ndarray:
-        """Unit ray directions in the sensor frame, column-major: (num_columns, num_beams, 3)."""
-        el = np.deg2rad(np.asarray(self.elevations_deg) + elevation_offset_deg)[None, :]
-        az = self.column_azimuths()[:, None]
+    def directions(
+        self, elevation_offset_deg: float | np.ndarray = 0.0, azimuth_offset_deg=0.0
+    ) -> np.ndarray:
+        """Unit ray directions in the sensor frame, column-major: (num_columns, num_beams, 3).
+
+        The offsets (degrees) are scalars or per ray, (num_columns, num_beams).
+        """
+        el = np.deg2rad(np.asarray(self.elevations_deg)[None, :] + elevation_offset_deg)
+        az = self.column_azimuths()[:, None] + np.deg2rad(azimuth_offset_deg)
         return np.stack(
             [np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el) + 0.0 * az], axis=-1
         )
@@ -73,6 +79,7 @@ class SensorModel:
             dropout=0.0,
             intensity_noise=0.0,
             mixed_pixel_prob=0.0,
+            beam_jitter_deg=0.0,
         )
 
 
@@ -103,6 +110,7 @@ SENSORS: dict[str, SensorModel] = {
         range_noise=0.03,
         elevation_bias_deg=0.0,
     ),
+    # Ouster OS1-64: 64 beams spaced uniformly over +-16.6 deg, 1024 (or 2048) columns.
     "os1-64": SensorModel(
         name="os1-64",
         elevations_deg=tuple(float(e) for e in np.linspace(16.6, -16.6, 64)),

@@ -9,6 +9,7 @@ Output (``root`` is the dataset folder, ``NN`` the sequence id)::
     root/sequences/NN/calib.txt             P0..P3 and Tr (Velodyne -> camera 0)
     root/sequences/NN/times.txt             frame times (s), first frame at 0
     root/sequences/NN/simulation.json       everything needed to regenerate the sequence
+    root/sequences/NN/world.json            the world (simulate.spec) when one was given
     root/poses/NN.txt                       ground truth, camera-0 convention, first pose identity
 
 Ground truth: a frame's pose is the LiDAR pose at its mid-sweep time, when the scanner faces
@@ -31,9 +32,10 @@ import numpy as np
 from gloam_jax import io
 from gloam_jax.errors import InputError
 from gloam_jax.simulate import raycast
-from gloam_jax.simulate.scene import build_scene
+from gloam_jax.simulate.families import build_scene
 from gloam_jax.simulate.sensors import SensorModel
-from gloam_jax.simulate.trajectory import Trajectory
+from gloam_jax.simulate.spec import WorldSpec
+from gloam_jax.simulate.trajectory import Trajectory, drive_stats
 from gloam_jax.simulate.world import REFLECTIVITY, Scene
 
 FORMAT_VERSION = 1
@@ -128,7 +130,12 @@ class SweepSimulator:
         sensor, W, B = self.sensor, self.sensor.num_columns, self.sensor.num_beams
         t_frame, T_frame, T_cols, ray_dt = self._sweep(i)
         origin = T_frame[:3, 3]
-        dirs = np.einsum("cij,cbj->cbi", T_cols[:, :3, :3], self.dirs_true)
+        dirs_true = self.dirs_true
+        if sensor.beam_jitter_deg > 0:  # each shot leaves a little off its nominal direction
+            rng = np.random.default_rng([self.seed, i, 0x717E])
+            jitter = rng.normal(0.0, sensor.beam_jitter_deg, (2, W, B))
+            dirs_true = sensor.directions(sensor.elevation_bias_deg + jitter[0], jitter[1])
+        dirs = np.einsum("cij,cbj->cbi", T_cols[:, :3, :3], dirs_true)
         origins = np.broadcast_to((T_cols[:, :3, 3] - origin)[:, None, :], dirs.shape)
         S = self.num_sectors
 
@@ -207,11 +214,17 @@ class SimulationConfig:
     switches: ErrorSwitches
     num_beams: int
     num_columns: int
+    world: WorldSpec | None = None  # set: the scene, sensor errors and drive come from it
 
     def to_json(self) -> dict:
         from gloam_jax import __version__
 
-        return {"format_version": FORMAT_VERSION, "gloam_jax": __version__, **asdict(self)}
+        record = {"format_version": FORMAT_VERSION, "gloam_jax": __version__, **asdict(self)}
+        if self.world is None:  # records made before worlds existed stay equal
+            del record["world"]
+        else:
+            record["world"] = self.world.to_dict()
+        return record
 
 
 def write_sequence(
@@ -234,10 +247,15 @@ def write_sequence(
     poses_path = root / "poses" / f"{config.sequence}.txt"
     meta = json.loads(json.dumps(config.to_json()))
     if meta_path.exists():
-        if json.loads(meta_path.read_text()).get("config") != meta:
+        done = json.loads(meta_path.read_text())
+        if done.get("config") != meta:
             raise InputError(
                 meta_path, "holds a different simulation; choose another output folder"
             )
+        if "points_per_frame" in done and all(
+            p.exists() for i in range(traj.num_frames) for p in _frame_paths(seq_dir, i)
+        ):
+            return seq_dir  # finished: skip building the scene
     elif poses_path.exists() or (seq_dir.is_dir() and any(seq_dir.iterdir())):
         # Never overwrite a user's dataset: only the simulator's own folders are resumed.
         found = poses_path if poses_path.exists() else seq_dir
@@ -253,9 +271,13 @@ def write_sequence(
             mount_height=sensor.mount_height,
             dynamic=config.switches.moving_objects,
             detail=config.switches.nonplanar_detail,
+            params=None if config.world is None else config.world.scene,
         )
     summary = {"config": meta, "source": traj.source, "Tr_cam_velo": traj.Tr_cam_velo.tolist()}
     io.write_atomic(meta_path, json.dumps(summary, indent=2))
+    if config.world is not None:  # which world this is, beside the scans
+        record = {**config.world.to_dict(), "drive": drive_stats(traj)}
+        io.write_atomic(seq_dir / "world.json", json.dumps(record, indent=2))
     sim = SweepSimulator(scene, traj, sensor, config.seed, config.switches)
     sim.plan_padding(np.unique(np.linspace(0, traj.num_frames - 1, 12).astype(int)))
     for sub in ("velodyne", "labels", "timestamps"):

@@ -209,3 +209,37 @@ def procedural_trajectory(frames: int, seed: int, *, speed: float = 9.0) -> Traj
         Tr_cam_velo=default_Tr_cam_velo(),
         source=f"procedural(seed={seed})",
     )
+
+
+def with_speed(traj: Trajectory, scale: float, frames: int) -> Trajectory:
+    """The same path driven ``scale`` times as fast, resampled at 10 Hz: ``frames`` frames from
+    the window's first pose (the trajectory must reach ``(frames - 1) * 0.1 * scale`` s past it,
+    in the recording's time)."""
+    t = (traj.times - traj.times[traj.first]) / scale  # the window starts at 0
+    dt = 0.1
+    k0, k1 = int(np.ceil(t[0] / dt)), int(np.floor(t[-1] / dt))
+    grid = dt * np.arange(k0, k1 + 1)
+    if -k0 + frames > len(grid):
+        raise InputError(traj.source, f"too short for {frames} frames at {scale:g}x speed")
+    return Trajectory(
+        times=grid + traj.times[traj.first],
+        T_world_lidar=interpolate_poses(t, traj.T_world_lidar, grid),
+        first=-k0,
+        num_frames=frames,
+        Tr_cam_velo=traj.Tr_cam_velo,
+        source=f"{traj.source} at {scale:g}x speed",
+    )
+
+
+def drive_stats(traj: Trajectory) -> dict:
+    """How the window's frames drive: path length (m), mean speed (m/s), total heading change
+    (degrees, turns either way counted positive)."""
+    T = traj.frame_poses
+    length = float(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1).sum())
+    yaw = np.unwrap(np.arctan2(T[:, 1, 0], T[:, 0, 0]))
+    duration = float(traj.frame_times[-1] - traj.frame_times[0])
+    return {
+        "length_m": round(length, 2),
+        "mean_speed_mps": round(length / max(duration, 1e-9), 2),
+        "turn_deg": round(float(np.degrees(np.abs(np.diff(yaw)).sum())), 1),
+    }

@@ -17,8 +17,8 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 # SemanticKITTI class ids (labels/*.label, low 16 bits).
-UNLABELED, CAR, BICYCLE, PERSON, BICYCLIST = 0, 10, 11, 30, 31
-ROAD, SIDEWALK, BUILDING, FENCE, OTHER_STRUCTURE = 40, 48, 50, 51, 52
+UNLABELED, CAR, BICYCLE, TRUCK, PERSON, BICYCLIST = 0, 10, 11, 18, 30, 31
+ROAD, PARKING, SIDEWALK, BUILDING, FENCE, OTHER_STRUCTURE = 40, 44, 48, 50, 51, 52
 VEGETATION, TRUNK, TERRAIN, POLE, TRAFFIC_SIGN = 70, 71, 72, 80, 81
 MOVING_CAR, MOVING_BICYCLIST, MOVING_PERSON = 252, 253, 254
 
@@ -26,9 +26,11 @@ CLASS_NAMES = {
     UNLABELED: "unlabeled",
     CAR: "car",
     BICYCLE: "bicycle",
+    TRUCK: "truck",
     PERSON: "person",
     BICYCLIST: "bicyclist",
     ROAD: "road",
+    PARKING: "parking",
     SIDEWALK: "sidewalk",
     BUILDING: "building",
     FENCE: "fence",
@@ -50,6 +52,7 @@ GRID_RES = 0.5  # ground grid spacing (m)
 
 REFLECTIVITY = {
     ROAD: 0.22,
+    PARKING: 0.25,
     SIDEWALK: 0.3,
     TERRAIN: 0.38,
     BUILDING: 0.35,
@@ -60,6 +63,7 @@ REFLECTIVITY = {
     POLE: 0.45,
     TRAFFIC_SIGN: 0.95,
     CAR: 0.4,
+    TRUCK: 0.42,
     MOVING_CAR: 0.4,
     MOVING_PERSON: 0.3,
     MOVING_BICYCLIST: 0.33,
@@ -148,6 +152,7 @@ class Ground:
     road_half_width: float
     sidewalk_width: float
     curb_height: float
+    labels: tuple[int, int, int] = (ROAD, SIDEWALK, TERRAIN)  # road, the band beside, beyond
 
     def height(self, xy: np.ndarray) -> np.ndarray:
         """Ground height at (K, 2) points (numpy twin of the ray caster's lookup)."""

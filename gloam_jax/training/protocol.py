@@ -3,7 +3,10 @@ windows of the real ground-truth trajectories.
 
 The paper trains on KITTI 01, 03, 05, 07, 09 and tests on 00, 02, 04, 06, 08, 10. We drive the
 simulator along a window of each real trajectory, in a scene style that resembles the
-sequence (city blocks, residential streets, the highway of 01 and the country road of 04).
+sequence (city blocks, residential streets, the highway of 01 and the country road of 04):
+``WINDOWS``. ``SPLITS`` is the broader protocol: train, validation and test worlds that differ
+in scene family, sensor, distortion and speed, with one family and one sensor left out of
+training (docs/worlds.md).
 """
 
 from __future__ import annotations
@@ -46,3 +49,80 @@ EXTRA_TRAINING_WINDOWS: dict[str, tuple[str, SimWindow]] = {
     "37": ("07", SimWindow("urban", 800)),
     "39": ("09", SimWindow("suburban", 800)),
 }
+
+
+# -- Worlds that differ (issue 18) ------------------------------------------------------------
+# Every sequence below is its own world (gloam_jax.simulate.spec): a scene family, a sensor, and
+# parameters drawn from the world's seed (its id). The paper's trajectory split stays: train
+# worlds drive the training trajectories 01 03 05 07 09, test worlds the test ones 00-10 even.
+# Validation worlds drive *other windows of the training trajectories* (at least 168 poses
+# from every training window) with their own seeds: model selection then never sees a test
+# trajectory, yet the road geometry it is scored on was not trained on either.
+# Leave one world out: the yard family and the OS1-64 sensor appear only in test, alone and
+# together, so a test table can tell apart a new scene, a new sensor and both.
+
+HELD_OUT_FAMILY = "yard"
+HELD_OUT_SENSOR = "os1-64"
+WORLD_FRAMES = 60  # 6 s a window: 25-130 m at 0.75-1.35x the recorded speed
+
+
+class World(NamedTuple):
+    """One simulated world of the protocol: written as sequence ``sequence`` (its seed too)."""
+
+    sequence: str
+    trajectory: str  # KITTI sequence id driven along
+    start: int  # first pose of the window
+    family: str
+    sensor: str
+    motion_distortion: bool
+
+
+SPLITS: dict[str, tuple[World, ...]] = {
+    "train": (
+        World("101", "01", 0, "forest", "hdl64", True),
+        World("102", "01", 700, "highway", "vlp16", True),
+        World("103", "03", 0, "suburban", "hdl64", True),
+        World("104", "03", 500, "forest", "hdl64", True),
+        World("105", "05", 0, "suburban", "vlp16", True),
+        World("106", "05", 1500, "urban", "hdl64", True),
+        World("107", "07", 0, "urban", "hdl64", True),
+        World("108", "07", 700, "suburban", "vlp16", False),
+        World("109", "09", 0, "forest", "hdl64", True),
+        World("110", "09", 800, "highway", "vlp16", True),
+    ),
+    "val": (
+        World("201", "01", 350, "highway", "vlp16", True),
+        World("202", "03", 250, "urban", "hdl64", True),
+        World("203", "05", 800, "forest", "hdl64", True),
+        World("204", "07", 350, "suburban", "hdl64", False),
+        World("205", "09", 400, "urban", "vlp16", True),
+    ),
+    "test": (
+        World("301", "00", 0, "urban", "hdl64", True),
+        World("302", "00", 2000, "yard", "os1-64", True),
+        World("303", "02", 0, "suburban", "hdl64", False),
+        World("304", "02", 2500, "yard", "hdl64", True),
+        World("305", "04", 0, "highway", "os1-64", True),
+        World("306", "06", 0, "suburban", "vlp16", True),
+        World("307", "06", 600, "forest", "os1-64", True),
+        World("308", "08", 100, "urban", "hdl64", True),
+        World("309", "08", 2000, "yard", "vlp16", False),
+        World("310", "10", 100, "forest", "hdl64", True),
+    ),
+}
+
+
+def world_spec(world: World, frames: int = WORLD_FRAMES, seed_offset: int = 0):
+    """The :class:`~gloam_jax.simulate.spec.WorldSpec` of a protocol world, drawn from its id
+    (plus ``seed_offset``, for another draw of the same protocol)."""
+    from gloam_jax.simulate.spec import draw_world  # the simulator loads JAX: only when used
+
+    return draw_world(
+        int(world.sequence) + seed_offset,
+        family=world.family,
+        sensor=world.sensor,
+        trajectory=world.trajectory,
+        start=world.start,
+        frames=frames,
+        motion_distortion=world.motion_distortion,
+    )
