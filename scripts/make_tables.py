@@ -14,23 +14,39 @@ Every run is the full odometry (``gloam run``: frame-to-model, deskew, keyframe 
 instead, as training does. The windows are 70-300 m long, shorter than the devkit's 100-800 m
 segments, so errors use the devkit's rule over segments of 10 %, 20 %, ..., 80 % of each
 window's path length (whole metres). Each run's folder is kept; a rerun skips finished ones.
+
+With ``--split val|test`` it scores the protocol's worlds of that split
+(``gloam_jax.training.protocol.SPLITS``; docs/protocol.md) instead, and aggregates:
+
+    python scripts/make_tables.py --split val --data data/worlds_s0 --data data/worlds_s1 \
+        --model grad=runs/s0/model.npz,runs/s1/model.npz,runs/s2/model.npz --out results/val
+
+Each ``--data`` root is one simulation seed of the split's worlds; a label's comma-separated
+files are its training seeds. Every cell is mean ± sample std over all runs (model files x
+simulation seeds; GICP: simulation seeds), the split mean likewise over each run's mean over
+the worlds. ``--split test`` scores each model file once: the score (split, worlds, seeds,
+data, commit, date, t_err, r_err) is appended to the file's provenance (``test_scores``), and a
+second test scoring of that file stops with one line unless ``--force``.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
+import subprocess
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
 from gloam_jax import io, metrics
 from gloam_jax.config import load_config
-from gloam_jax.models import shipped_model_path
+from gloam_jax.models import load_model, save_model, shipped_model_path
 from gloam_jax.pipeline import run_sequence
 from gloam_jax.training.losses import TRAINING_FRACTIONS, scaled_lengths
-from gloam_jax.training.protocol import TEST_SEQUENCES, TRAIN_SEQUENCES
+from gloam_jax.training.protocol import SPLITS, TEST_SEQUENCES, TRAIN_SEQUENCES
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -67,21 +83,175 @@ def fmt(x: float) -> str:
     return f"{x:.2f}"
 
 
-def main() -> None:
+def commit() -> str:
+    """The checkout's short commit, marked when code differs from it."""
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "scripts", "gloam_jax"])
+    return head.stdout.strip() + (" (+ uncommitted changes)" if dirty.returncode else "")
+
+
+def aggregate(values: list[float]) -> dict:
+    """Mean and sample standard deviation (ddof 1; None for a single value) and the count."""
+    x = np.asarray(values, dtype=np.float64)
+    return {
+        "mean": float(x.mean()),
+        "std": float(x.std(ddof=1)) if len(x) > 1 else None,
+        "n": len(x),
+    }
+
+
+def fmt_pm(agg: dict) -> str:
+    std = "n/a" if agg["std"] is None else f"{agg['std']:.3f}"
+    return f"{agg['mean']:.3f} ± {std}"
+
+
+def _key(path: Path) -> str:
+    """A folder name per file or root: readable, and distinct for different paths."""
+    return f"{path.name}-{hashlib.sha1(str(path.resolve()).encode()).hexdigest()[:8]}"
+
+
+def sim_seed(data: Path, sequence: str) -> int:
+    """The simulation seed offset of a protocol world (its seed less its id)."""
+    meta = json.loads((data / "sequences" / sequence / "simulation.json").read_text())
+    return int(meta["config"]["seed"]) - int(sequence)
+
+
+ERRORS = ("t_err", "r_err")
+
+
+def summarize(runs: list[dict], worlds: tuple[str, ...]) -> dict:
+    """Per world and for the split mean: t_err and r_err aggregated over ``runs``, each
+    ``{"worlds": {sequence: row}}``; the split mean of a run is its mean over the worlds."""
+    out: dict = {"worlds": {}, "runs": len(runs)}
+    for s in worlds:
+        out["worlds"][s] = {m: aggregate([r["worlds"][s][m] for r in runs]) for m in ERRORS}
+    out["mean"] = {
+        m: aggregate([np.mean([r["worlds"][s][m] for s in worlds]) for r in runs]) for m in ERRORS
+    }
+    return out
+
+
+def recorded_test_scores(path: Path) -> list[dict]:
+    return load_model(path).provenance.get("test_scores", [])
+
+
+def refuse_rescoring(files: list[Path], force: bool) -> None:
+    """SystemExit (one line) when a file was already scored on the test split."""
+    for path in files:
+        scores = recorded_test_scores(path)
+        if scores and not force:
+            last = scores[-1]
+            raise SystemExit(
+                f"{path}: already scored on the test split ({last['date']}, commit "
+                f"{last['commit']}); the test split is scored once per model (--force to rescore)"
+            )
+
+
+def record_test_score(path: Path, entry: dict) -> None:
+    """Append ``entry`` to the model file's ``provenance["test_scores"]`` (atomic rewrite)."""
+    model = load_model(path)
+    provenance = {**model.provenance, "test_scores": [*recorded_test_scores(path), entry]}
+    save_model(path, dataclasses.replace(model, provenance=provenance))
+
+
+def split_tables(args: argparse.Namespace, models: dict[str, list[Path]]) -> dict:
+    """Score the split's worlds for GICP and each model label; write, print and return the
+    aggregates. ``--split test`` records each file's score in its provenance."""
+    worlds = tuple(w.sequence for w in SPLITS[args.split])
+    if args.sequences is not None:
+        chosen = tuple(args.sequences.split(","))
+        unknown = sorted(set(chosen) - set(worlds))
+        if unknown:
+            raise SystemExit(f"--sequences: not in the {args.split} split: {', '.join(unknown)}")
+        worlds = tuple(s for s in worlds if s in chosen)
+    testing = args.split == "test"
+    files = sorted({f for fs in models.values() for f in fs})
+    if testing:
+        refuse_rescoring(files, args.force)
+    rows: dict[str, tuple[str, list[Path | None]]] = {"GICP": ("gicp", [None])}
+    rows |= {label: ("gloam", fs) for label, fs in models.items()}
+    if args.ablation is not None:
+        fs = models[f"GLOAM ({args.ablation})"]
+        rows |= {f"GICP+DA ({args.ablation})": ("gicp_da", fs)}
+        rows |= {f"GICP+CE ({args.ablation})": ("gicp_ce", fs)}
+    runs: dict[str, list[dict]] = {}
+    for label, (method, fs) in rows.items():
+        for f in fs:
+            for data in args.data:
+                folder = args.out / label / (_key(f) if f else "-") / _key(data)
+                scored = {}
+                for s in worlds:
+                    print(f"{label} {f or ''} {data} {s} ...", flush=True)
+                    scored[s] = run(data, s, method, f, folder / s, args.mode)
+                runs.setdefault(label, []).append(
+                    {"model": str(f) if f else None, "data": str(data), "worlds": scored}
+                )
+    seeds = sorted({sim_seed(d, s) for d in args.data for s in worlds})
+    summary = {label: summarize(rs, worlds) for label, rs in runs.items()}
+    record = {
+        "split": args.split,
+        "worlds": list(worlds),
+        "sim_seeds": seeds,
+        "data": [str(d) for d in args.data],
+        "commit": commit(),
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "summary": summary,
+        "runs": runs,
+    }
+    head = ["method", *worlds, "mean", "runs"]
+    lines = [
+        f"{args.split} split, t_err (%), mean ± sample std over runs (model files x "
+        f"simulation seeds {seeds}), commit {record['commit']}",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
+    for label, agg in summary.items():
+        cells = [fmt_pm(agg["worlds"][s]["t_err"]) for s in worlds]
+        cells += [fmt_pm(agg["mean"]["t_err"]), str(agg["runs"])]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    text = "\n".join(lines)
+    print(text)
+    io.write_atomic(args.out / "tables.md", text + "\n")
+    io.write_atomic(args.out / "tables.json", json.dumps(record, indent=2))
+    if testing:  # each file's own score: its mean over the simulation seeds, per method
+        base = {k: record[k] for k in ("split", "worlds", "sim_seeds", "data", "commit", "date")}
+        for f in files:
+            for label, (method, fs) in rows.items():
+                if f in fs:
+                    own = summarize([r for r in runs[label] if r["model"] == str(f)], worlds)
+                    record_test_score(f, {**base, "method": method, **own["mean"]})
+    return record
+
+
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path("data/protocol"))
-    parser.add_argument("--model", action="append", default=[], help="LABEL=FILE, or shipped")
+    parser.add_argument("--data", type=Path, action="append", help="root (default "
+                        "data/protocol); with --split, one per simulation seed")  # fmt: skip
+    parser.add_argument("--model", action="append", default=[],
+                        help="LABEL=FILE[,FILE...] (training seeds), or shipped")  # fmt: skip
     parser.add_argument("--ablation", help="label of the --model for Table II")
     parser.add_argument("--mode", default="frame_to_model", help="or frame_to_frame")
-    parser.add_argument("--sequences", default=None, help="only these (default: all 11)")
+    parser.add_argument("--sequences", default=None, help="only these (default: all)")
+    parser.add_argument("--split", choices=("val", "test"), help="score the protocol's worlds")
+    parser.add_argument("--force", action="store_true", help="score a model on test again")
     parser.add_argument("--out", type=Path, default=Path("results/tables"))
-    args = parser.parse_args()
-    models = {}
+    args = parser.parse_args(argv)
+    args.data = args.data or [Path("data/protocol")]
+    models: dict[str, list[Path]] = {}
     for item in args.model:
-        label, _, path = item.partition("=")
-        models[f"GLOAM ({label})"] = Path(path or shipped_model_path())
+        label, _, paths = item.partition("=")
+        files = [Path(p) for p in paths.split(",")] if paths else [shipped_model_path()]
+        models[f"GLOAM ({label})"] = files
     if args.ablation is not None and f"GLOAM ({args.ablation})" not in models:
         raise SystemExit(f"--ablation {args.ablation}: no --model has that label")
+    if args.split is not None:
+        split_tables(args, models)
+        return
+    if len(args.data) > 1 or any(len(fs) > 1 for fs in models.values()):
+        raise SystemExit("several --data roots or model files per label need --split")
+    args.data = args.data[0]
+    models = {label: fs[0] for label, fs in models.items()}
     all_seqs = TRAIN_SEQUENCES + TEST_SEQUENCES
     chosen = all_seqs if args.sequences is None else tuple(args.sequences.split(","))
     results: dict[str, dict[str, dict]] = {}

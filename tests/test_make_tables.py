@@ -1,0 +1,132 @@
+"""scripts/make_tables.py --split: aggregation over seeds, once-only test scoring, provenance."""
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gloam_jax.models import load_model, shipped_model_path
+from gloam_jax.simulate import simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+spec = importlib.util.spec_from_file_location("make_tables", ROOT / "scripts/make_tables.py")
+make_tables = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(make_tables)
+
+
+def test_aggregate_is_mean_and_sample_std():
+    agg = make_tables.aggregate([0.2, 0.4, 0.9])
+    assert agg["mean"] == pytest.approx(0.5, abs=1e-12)
+    # sample std: sqrt(((-0.3)^2 + (-0.1)^2 + 0.4^2) / 2)
+    assert agg["std"] == pytest.approx(np.sqrt(0.26 / 2), abs=1e-12)
+    assert agg["n"] == 3
+    one = make_tables.aggregate([0.3])
+    assert one["std"] is None and make_tables.fmt_pm(one) == "0.300 ± n/a"
+
+
+def _fake_root(path: Path, offset: int, worlds: tuple[str, ...]) -> Path:
+    for s in worlds:
+        (path / "sequences" / s).mkdir(parents=True)
+        meta = {"config": {"seed": int(s) + offset}}
+        (path / "sequences" / s / "simulation.json").write_text(json.dumps(meta))
+    return path
+
+
+def test_split_aggregates_over_model_files_and_simulation_seeds(tmp_path, monkeypatch):
+    worlds = ("201", "203")
+    roots = [_fake_root(tmp_path / f"s{k}", k, worlds) for k in (0, 1)]
+    # t_err of a run: GICP 1.0 + seed; model file a: 0.5 + seed, b: 0.7 + seed; world 203 +0.2
+    base = {None: 1.0, "a.npz": 0.5, "b.npz": 0.7}
+
+    def fake_run(data, sequence, method, weights, out, mode):
+        t = base[None if weights is None else weights.name] + roots.index(data)
+        t += 0.2 * (sequence == "203")
+        return {"t_err": t, "r_err": 2 * t}
+
+    monkeypatch.setattr(make_tables, "run", fake_run)
+    argv = ["--split", "val", "--sequences", ",".join(worlds), "--out", str(tmp_path / "out")]
+    argv += [f"--data={r}" for r in roots] + ["--model", "m=a.npz,b.npz"]
+    make_tables.main(argv)
+    record = json.loads((tmp_path / "out" / "tables.json").read_text())
+    assert record["split"] == "val" and record["sim_seeds"] == [0, 1]
+    assert record["worlds"] == list(worlds)
+    model = record["summary"]["GLOAM (m)"]
+    runs = [0.5, 1.5, 0.7, 1.7]  # (a, b) x (seed 0, 1) on 201
+    assert model["runs"] == 4
+    assert model["worlds"]["201"]["t_err"]["mean"] == pytest.approx(np.mean(runs), abs=1e-12)
+    assert model["worlds"]["201"]["t_err"]["std"] == pytest.approx(np.std(runs, ddof=1), abs=1e-12)
+    split_means = [r + 0.1 for r in runs]  # each run's mean over 201 and 203
+    assert model["mean"]["t_err"]["mean"] == pytest.approx(np.mean(split_means), abs=1e-12)
+    assert model["mean"]["r_err"]["std"] == pytest.approx(
+        np.std(2 * np.array(split_means), ddof=1), abs=1e-12
+    )
+    gicp = record["summary"]["GICP"]
+    assert gicp["runs"] == 2
+    assert gicp["mean"]["t_err"]["mean"] == pytest.approx(1.6, abs=1e-12)
+    assert (
+        "| GICP | 1.500 ± 0.707 | 1.700 ± 0.707 | 1.600 ± 0.707 | 2 |"
+        in (tmp_path / "out" / "tables.md").read_text()
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_test_world(tmp_path_factory):
+    """Test world 301 as 5 frames of a 16-beam sensor: small, but the real odometry path."""
+    root = tmp_path_factory.mktemp("worlds")
+    simulate(root, frames=5, num_beams=16, num_columns=400, seed=301, sequence="301")
+    return root
+
+
+def test_test_split_scores_once_and_records_provenance(tiny_test_world, tmp_path, monkeypatch):
+    model_file = tmp_path / "model.npz"
+    shutil.copy(shipped_model_path(), model_file)
+    before = load_model(model_file)
+    out = tmp_path / "out"
+    argv = ["--split", "test", "--sequences", "301", "--data", str(tiny_test_world)]
+    argv += ["--model", f"m={model_file}", "--out", str(out)]
+    make_tables.main(argv)
+    after = load_model(model_file)
+    (entry,) = after.provenance["test_scores"]
+    assert entry["split"] == "test" and entry["worlds"] == ["301"] and entry["sim_seeds"] == [0]
+    assert entry["method"] == "gloam" and entry["data"] == [str(tiny_test_world)]
+    assert entry["commit"] and entry["date"]
+    row = json.loads(next(out.glob("GLOAM (m)/*/*/301/table_metrics.json")).read_text())
+    assert entry["t_err"]["mean"] == pytest.approx(row["t_err"], abs=1e-12)
+    assert np.isfinite(row["t_err"]) and row["t_err"] >= 0
+    # the rest of the file is unchanged
+    assert {k: v for k, v in after.provenance.items() if k != "test_scores"} == before.provenance
+    np.testing.assert_array_equal(after.eigenvalue.w1, before.eigenvalue.w1)
+    np.testing.assert_array_equal(after.pca.components, before.pca.components)
+
+    with pytest.raises(SystemExit) as refused:
+        make_tables.main(argv)
+    message = str(refused.value)
+    assert "\n" not in message and "already scored on the test split" in message
+    assert "--force" in message
+    assert len(load_model(model_file).provenance["test_scores"]) == 1
+
+    # --force scores again from the finished runs (kept on disk: none is run twice)
+    def no_rerun(*args, **kwargs):
+        raise AssertionError("a finished run was run again")
+
+    monkeypatch.setattr(make_tables, "run_sequence", no_rerun)
+    make_tables.main([*argv, "--force"])
+    scores = load_model(model_file).provenance["test_scores"]
+    assert len(scores) == 2
+    assert scores[1]["t_err"]["mean"] == pytest.approx(entry["t_err"]["mean"], abs=1e-12)
+
+
+def test_val_split_leaves_the_model_file_alone(tmp_path, monkeypatch):
+    root = _fake_root(tmp_path / "s0", 0, ("201",))
+    model_file = tmp_path / "model.npz"
+    shutil.copy(shipped_model_path(), model_file)
+    monkeypatch.setattr(make_tables, "run", lambda *a: {"t_err": 0.3, "r_err": 0.5})
+    argv = ["--split", "val", "--sequences", "201", "--data", str(root)]
+    for _ in range(2):  # validation may be scored as often as selection needs
+        make_tables.main([*argv, "--model", f"m={model_file}", "--out", str(tmp_path / "o")])
+    assert "test_scores" not in load_model(model_file).provenance
+    with pytest.raises(SystemExit, match="not in the val split: 301"):
+        make_tables.main(["--split", "val", "--sequences", "301", "--data", str(root)])
