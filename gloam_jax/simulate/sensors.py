@@ -56,7 +56,9 @@ class SensorModel:
         return np.pi * (1.0 - 2.0 * u)
 
     def directions(
-        self, elevation_offset_deg: float | np.ndarray = 0.0, azimuth_offset_deg=0.0
+        self,
+        elevation_offset_deg: float | np.ndarray = 0.0,
+        azimuth_offset_deg: float | np.ndarray = 0.0,
     ) -> np.ndarray:
         """Unit ray directions in the sensor frame, column-major: (num_columns, num_beams, 3).
 

@@ -126,7 +126,10 @@ class WorldSpec:
             **{**data, "scene": StyleParams(**scene), "sensor": SensorSpec(**data["sensor"])}
         )
 
-    def sensor_model(self, num_beams: int | None = None, num_columns: int | None = None):
+    def sensor_model(
+        self, num_beams: int | None = None, num_columns: int | None = None
+    ) -> SensorModel:
+        """The world's sensor with its errors (see :meth:`SensorSpec.model`)."""
         return self.sensor.model(num_beams, num_columns)
 
 

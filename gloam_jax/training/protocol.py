@@ -11,7 +11,10 @@ training (docs/worlds.md).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
+
+if TYPE_CHECKING:
+    from gloam_jax.simulate.spec import WorldSpec
 
 TRAIN_SEQUENCES: tuple[str, ...] = ("01", "03", "05", "07", "09")
 TEST_SEQUENCES: tuple[str, ...] = ("00", "02", "04", "06", "08", "10")
@@ -112,7 +115,7 @@ SPLITS: dict[str, tuple[World, ...]] = {
 }
 
 
-def world_spec(world: World, frames: int = WORLD_FRAMES, seed_offset: int = 0):
+def world_spec(world: World, frames: int = WORLD_FRAMES, seed_offset: int = 0) -> WorldSpec:
     """The :class:`~gloam_jax.simulate.spec.WorldSpec` of a protocol world, drawn from its id
     (plus ``seed_offset``, for another draw of the same protocol)."""
     from gloam_jax.simulate.spec import draw_world  # the simulator loads JAX: only when used
