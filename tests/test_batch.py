@@ -198,7 +198,7 @@ def test_ctrl_c_checkpoints_the_last_completed_step(sim_sequence, tmp_path):
     assert meta["step"] == 1 and [h["step"] for h in meta["history"]] == [0, 1]
     assert json.loads((run / "history.json").read_text()) == meta["history"]
     # The weights written are step 1's: they score what step 1's evaluation logged.
-    t_err, _ = problem.training_loss(trees["params"])
+    t_err = problem.training_loss(trees["params"]).t_err
     assert t_err == pytest.approx(meta["history"][1]["t_err"], rel=1e-6)
     assert t_err != pytest.approx(meta["history"][0]["t_err"], rel=1e-6)
 

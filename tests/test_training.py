@@ -112,12 +112,12 @@ def test_tpe_runs_resumes_and_exports(sim_sequence, tmp_path, model):
     assert history[-1]["best_t_err"] == min(h["t_err"] for h in history)
     # Trial 0 is the start model itself.
     problem = setup(cfg, run, cache_dir=cache)
-    assert history[0]["t_err"] == pytest.approx(problem.training_loss(problem.init_params)[0])
+    assert history[0]["t_err"] == pytest.approx(problem.training_loss(problem.init_params).t_err)
     loaded = load_model(run / "model.npz")
     assert loaded.provenance["mode"] == "tpe"
     assert loaded.provenance["train_t_err"] == pytest.approx(history[-1]["best_t_err"])
     got = problem.training_loss(problem.init_params._replace(
-        conversion=loaded.conversion, eigenvalue=loaded.eigenvalue))[0]  # fmt: skip
+        conversion=loaded.conversion, eigenvalue=loaded.eigenvalue)).t_err  # fmt: skip
     assert got == pytest.approx(history[-1]["best_t_err"], rel=1e-5)
     assert trained.provenance["trials"] == 3 and (run / "loss_curve.png").stat().st_size > 0
 

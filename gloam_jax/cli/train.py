@@ -202,8 +202,13 @@ def _train(config, mode, data, out, trials, seed, steps, learning_rate, cache, s
 
             model = train_grad(problem, tick)
     info = model.provenance
+    chosen = (
+        f"chosen on validation ({cfg.objective} {info['selected_value']:.4g}), training t_err"
+        if info["selected_on"] == "validation"
+        else "best training t_err"
+    )
     console.print(
-        f"{cfg.mode}: best training t_err {100 * info['train_t_err']:.3f} % "
+        f"{cfg.mode}: {chosen} {100 * info['train_t_err']:.3f} % "
         f"({info['wall_s']:.0f} s of training); model: {out / 'model.npz'}, "
         f"curve: {out / 'loss_curve.png'}"
     )

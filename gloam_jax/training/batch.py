@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.typing import ArrayLike
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
@@ -34,6 +35,7 @@ from gloam_jax.errors import InputError
 from gloam_jax.gicp import Cloud, GICPConfig, gicp_round
 from gloam_jax.io import lidar_to_cam_poses
 from gloam_jax.learned import Learned, attributes
+from gloam_jax.training.objective import objective
 from gloam_jax.training.losses import TRAINING_FRACTIONS, SegmentPlan, chain, segment_errors
 
 
@@ -274,12 +276,20 @@ def window_errors(T_rel: Array, windows: list[Window]) -> tuple[Array, Array]:
     return jnp.stack(t_err), jnp.stack(r_err)
 
 
-def loss(learned: Learned, data: BatchData, config: BatchConfig, mesh: Mesh | None = None) -> Array:
-    """Mean translational relative error over the windows (a fraction): Eq. (8)'s loss; the
-    pairs split over ``mesh`` (see :func:`register_sharded`), the same loss to float
-    rounding."""
+def loss(
+    learned: Learned,
+    data: BatchData,
+    config: BatchConfig,
+    mesh: Mesh | None = None,
+    reference: ArrayLike | None = None,
+    worse_penalty: float = 0.0,
+) -> Array:
+    """The training objective of the windows' translational relative errors: their mean (a
+    fraction, Eq. (8)'s loss), or with plain GICP's per-window errors ``reference`` (W,) the
+    ``gicp_ratio`` of :mod:`gloam_jax.training.objective`. The pairs split over ``mesh`` (see
+    :func:`register_sharded`), the same loss to float rounding."""
     T_rel = register_sharded(learned, data.scans, data.pairs, config, data.regularizer, mesh)
-    return jnp.mean(window_errors(T_rel, data.windows)[0])
+    return objective(window_errors(T_rel, data.windows)[0], reference, worse_penalty)
 
 
 class Evaluation(NamedTuple):

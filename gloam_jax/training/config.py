@@ -24,6 +24,7 @@ class TPEConfig:
     n_trials: int = 200  # finished (complete or pruned) trials of the study, all workers together
     n_startup_trials: int = 10  # random trials before TPE models the good ones
     bound: float = 1.0  # each weight searched in [init - bound, init + bound]
+    validate_best: int = 10  # with validation sequences: this many best trials are validated
     storage: str | None = None  # optuna RDB URL; None: sqlite:///RUN/study.db
     study_name: str | None = None  # None: the run folder's name
     # A worker marks its running trial alive every heartbeat_interval s; a trial silent for
@@ -32,7 +33,7 @@ class TPEConfig:
     grace_period: int = 120
 
     def __post_init__(self) -> None:
-        for name in ("n_trials", "heartbeat_interval", "grace_period"):
+        for name in ("n_trials", "validate_best", "heartbeat_interval", "grace_period"):
             if getattr(self, name) < 1:
                 raise InputError(None, f"tpe.{name} must be >= 1, not {getattr(self, name)}")
         if self.grace_period <= self.heartbeat_interval:
@@ -65,18 +66,38 @@ class GradConfig:
 class TrainConfig:
     """A training run: data, model start, registrations, and the chosen mode's settings."""
 
-    mode: Literal["tpe", "grad"] = "grad"
+    mode: Literal["tpe", "grad"] = "grad"  # the paper's TPE search, or gradients through GICP
     method: Literal["gicp_da", "gicp_ce", "gloam"] = "gloam"  # which MLPs are trained
     data: str = "data/protocol"  # KITTI-layout root of the training sequences
-    sequences: tuple[str, ...] = TRAIN_SEQUENCES
+    sequences: tuple[str, ...] = TRAIN_SEQUENCES  # training sequences of data
     frames: int | None = None  # first N scans of each sequence (None: all)
     init_model: str | None = None  # start from this model file (its PCA and MLPs)
     init: Literal["random", "gicp"] = "gicp"  # without init_model: how the MLPs start
     pca_every: int = 25  # without init_model: fit the PCA on every N-th training scan
-    seed: int = 0
+    seed: int = 0  # of the start model, TPE's sampler and the point subsets
+    # What is minimised and selected on (gloam_jax.training.objective): "t_err", the windows'
+    # mean; "gicp_ratio", each window's t_err over plain GICP's, averaged, plus worse_penalty
+    # times the mean excess of the windows made worse than GICP.
+    objective: Literal["t_err", "gicp_ratio"] = "t_err"
+    worse_penalty: float = 4.0  # gicp_ratio: weight of the windows' excess over GICP
+    # The exported weights are the best on these validation sequences of validation_data
+    # (None: data) among the candidates (TPE: its best tpe.validate_best trials; gradients:
+    # every evaluated step); none: the best on the training windows. Never test sequences.
+    validation: tuple[str, ...] = ()
+    validation_data: str | None = None  # KITTI-layout root of the validation sequences
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     batch: BatchConfig = field(default_factory=BatchConfig)
     tpe: TPEConfig = field(default_factory=TPEConfig)
     grad: GradConfig = field(default_factory=GradConfig)
 
     MOVED: ClassVar[dict[str, str]] = {"odometry": "preprocess"}
+
+    def __post_init__(self) -> None:
+        if self.worse_penalty < 0:
+            raise InputError(None, f"worse_penalty must be >= 0, not {self.worse_penalty}")
+        same_root = self.validation_data in (None, self.data)
+        shared = sorted(set(self.validation) & set(self.sequences)) if same_root else []
+        if shared:
+            raise InputError(
+                None, f"validation sequences {', '.join(shared)} are also training sequences"
+            )

@@ -8,8 +8,9 @@ through the choice among candidates; ``adjoint`` picks optimistix's unrolled
 solves. With ``source_points``, each step sees a fresh random subset of every pair's source
 points (seeded by the run's seed and the step, so a resumed run repeats them). Steps with a
 non-finite loss or gradient are skipped. Every ``eval_every`` steps the
-training loss is measured as TPE measures it (hard association), and the best weights by that
-number are kept. Checkpoints are written atomically; a rerun in the same folder resumes, also
+training loss is measured as TPE measures it (hard association), and on the validation windows
+when the run has them; the best weights by the validation objective (else the training one)
+are kept. Checkpoints are written atomically; a rerun in the same folder resumes, also
 after Ctrl-C, which writes the last completed step before it propagates.
 
 The registrations of a step are split over a device mesh (default: every local device, so
@@ -35,7 +36,13 @@ from gloam_jax import io
 from gloam_jax.errors import InputError
 from gloam_jax.learned import Learned
 from gloam_jax.training import batch
-from gloam_jax.training.problem import Clock, Problem, plot_histories, write_history
+from gloam_jax.training.problem import (
+    Clock,
+    Problem,
+    plot_histories,
+    selection,
+    write_history,
+)
 
 CHECKPOINT = "checkpoint.npz"
 
@@ -102,7 +109,7 @@ def train_grad(
     optimizer = _optimizer(problem)
     params = problem.init_params
     state = optimizer.init(params)
-    best_params, best, history, step = params, np.inf, [], 0
+    best_params, best, best_t_err, history, step = params, np.inf, np.inf, [], 0
     clock = Clock()
     path = run_dir / CHECKPOINT
     if path.is_file():
@@ -111,15 +118,17 @@ def train_grad(
         )
         params, state, best_params = trees["params"], trees["state"], trees["best_params"]
         step, best, history = meta["step"], meta["best"], meta["history"]
+        best_t_err = meta.get("best_t_err", best)  # checkpoints before the objective setting
         clock = Clock(meta["elapsed"])
     # Weights and Adam's state on every device; the pairs split over them, once.
     params, state, best_params = jax.device_put((params, state, best_params), replicated)
     data, config = problem.data, problem.config.batch
+    worse_penalty = problem.config.worse_penalty
     scans, pairs = batch.place(data.scans, data.pairs, mesh)
 
     def loss(p: Learned, scans, pairs):
         step_data = batch.BatchData(scans, pairs, data.windows, data.regularizer)
-        return batch.loss(p, step_data, config, mesh)
+        return batch.loss(p, step_data, config, mesh, problem.reference, worse_penalty)
 
     rows = data.pairs.rows.shape[1]
     subset = rows if cfg.source_points is None else min(cfg.source_points, rows)
@@ -142,24 +151,29 @@ def train_grad(
         return *jax.lax.with_sharding_constraint((new_p, new_s), replicated), value, ok
 
     def evaluate(p: Learned, at: int, soft: float | None) -> None:
-        nonlocal best, best_params
-        t_err, r_err = problem.training_loss(p)
-        if t_err < best:
-            best, best_params = t_err, p
+        # The exported step is the best on the validation windows when there are any.
+        nonlocal best, best_t_err, best_params
+        train, val = problem.training_loss(p), problem.validation_loss(p)
+        chosen = (train if val is None else val).objective
+        if chosen < best:
+            best, best_t_err, best_params = chosen, train.t_err, p
         history.append(
-            {"step": at, "wall_s": clock.lap(), "t_err": t_err, "r_err": r_err,
-             "soft_loss": soft, "best_t_err": best}
+            {"step": at, "wall_s": clock.lap(), "objective": train.objective,
+             "t_err": train.t_err, "r_err": train.r_err, "soft_loss": soft,
+             **({} if val is None else {"val_objective": val.objective, "val_t_err": val.t_err}),
+             "best": best, "best_t_err": best_t_err}
         )  # fmt: skip
 
     def checkpoint() -> None:
-        meta = {"step": step, "best": best, "history": history, "elapsed": clock.lap()}
+        meta = {"step": step, "best": best, "best_t_err": best_t_err, "history": history,
+                "elapsed": clock.lap()}  # fmt: skip
         trees = {"params": params, "state": state, "best_params": best_params}
         save_checkpoint(path, trees, meta)
         write_history(run_dir, history)
 
     # What the last completed step left (its update, evaluation and checkpoint all done), as
     # one tuple, so that Ctrl-C arriving anywhere finds a consistent state to write.
-    done = (step, params, state, best, best_params, len(history))
+    done = (step, params, state, best, best_t_err, best_params, len(history))
     try:
         # Trace and compile the update in a thread while the start is evaluated: XLA compiles
         # outside Python's lock, so the two overlap. A finished run compiles nothing.
@@ -171,7 +185,7 @@ def train_grad(
             )
             if step == 0 and not history:
                 evaluate(params, 0, None)
-                done = (step, params, state, best, best_params, len(history))
+                done = (step, params, state, best, best_t_err, best_params, len(history))
             update_step = update if compiling is None else compiling.result()
         soft = None
         while step < cfg.steps:
@@ -183,18 +197,21 @@ def train_grad(
                 evaluate(params, step, soft)
             if step % cfg.checkpoint_every == 0 or step == cfg.steps:
                 checkpoint()
-            done = (step, params, state, best, best_params, len(history))
+            done = (step, params, state, best, best_t_err, best_params, len(history))
             if progress is not None:
-                progress(step, cfg.steps, best)
+                progress(step, cfg.steps, best_t_err)
     except KeyboardInterrupt:
-        step, params, state, best, best_params, kept = done
+        step, params, state, best, best_t_err, best_params, kept = done
         del history[kept:]
         checkpoint()
         raise
     write_history(run_dir, history)
+    wall = [h["wall_s"] for h in history]
+    curves = {"training t_err (hard association)": (wall, [100 * h["t_err"] for h in history])}
+    if problem.validation is not None:
+        curves["validation t_err"] = (wall, [100 * h["val_t_err"] for h in history])
     plot_histories(
-        {"training t_err (hard association)": (
-            [h["wall_s"] for h in history], [100 * h["t_err"] for h in history])},
+        curves,
         run_dir / "loss_curve.png",
         f"gradient ({config.gicp.adjoint} adjoint, {config.association} association), "
         f"{problem.config.method}",
@@ -204,5 +221,6 @@ def train_grad(
     return problem.export(
         best_params,
         run_dir / "model.npz",
-        {"train_t_err": best, "steps": step, "wall_s": history[-1]["wall_s"]},
+        {"train_t_err": best_t_err, "steps": step, "wall_s": history[-1]["wall_s"],
+         **selection(problem, best)},  # fmt: skip
     )

@@ -32,6 +32,7 @@ from gloam_jax.models import GLOAMModel, init_model, load_model, save_model, wit
 from gloam_jax.training.batch import BatchData, Evaluator
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.data import load_windows
+from gloam_jax.training.objective import Score, score
 
 Progress = Callable[[str, int, int], None]  # (what, done, total)
 
@@ -67,6 +68,15 @@ def fit_initial_model(
 
 
 @dataclasses.dataclass
+class Validation:
+    """The validation windows' hard-association evaluator and plain GICP's t_err on each
+    (W,) (the ``gicp_ratio`` objective's reference; None for ``t_err``)."""
+
+    evaluate: Evaluator
+    reference: np.ndarray | None
+
+
+@dataclasses.dataclass
 class Problem:
     """A prepared training run (see :func:`setup`)."""
 
@@ -75,6 +85,8 @@ class Problem:
     model: GLOAMModel  # the start
     data: BatchData
     evaluate_hard: Evaluator  # the training loss as reported (hard association)
+    reference: np.ndarray | None = None  # plain GICP's t_err per training window (gicp_ratio)
+    validation: Validation | None = None  # what chooses the exported weights, if given
 
     @property
     def init_params(self) -> Learned:
@@ -83,11 +95,20 @@ class Problem:
         start = self.model.learned.for_method(self.config.method)
         return start._replace(eps=jnp.asarray(self.model.eps, jnp.float32))
 
-    def training_loss(self, params: Learned) -> tuple[float, float]:
-        """Mean t_err (fraction) and r_err (rad/m) over the training windows, hard
-        association: the number both modes are compared on."""
+    def training_loss(self, params: Learned) -> Score:
+        """The objective, mean t_err (fraction) and r_err (rad/m) over the training windows,
+        hard association: the numbers both modes are compared on."""
         result = self.evaluate_hard(params)
-        return float(np.mean(result.t_err)), float(np.mean(result.r_err))
+        return score(result.t_err, result.r_err, self.reference, self.config.worse_penalty)
+
+    def validation_loss(self, params: Learned) -> Score | None:
+        """As :meth:`training_loss` on the validation windows; None without them."""
+        if self.validation is None:
+            return None
+        result = self.validation.evaluate(params)
+        return score(
+            result.t_err, result.r_err, self.validation.reference, self.config.worse_penalty
+        )
 
     def export(self, params: Learned, path: Path, extra: dict[str, Any]) -> GLOAMModel:
         """Write ``params`` as a model file with its provenance; returns the model."""
@@ -152,11 +173,13 @@ def setup(
     *,
     cache_dir: str | Path | None = None,
     progress: Progress | None = None,
+    validation: bool = True,
 ) -> Problem:
     """Prepare a training run in ``run_dir``: the start model (``config.init_model``, or a PCA
     fitted on the training scans with initialised MLPs, saved as ``init_model.npz`` so a
     resumed run starts alike) and the prepared windows (cached in ``cache_dir``, default
-    ``run_dir/cache``)."""
+    ``run_dir/cache``) and, with ``validation`` and the config's validation sequences, the
+    validation windows (a TPE worker process, which does not export, skips them)."""
     run_dir = Path(run_dir)
     resumed = _check_run_dir(config, run_dir)
     try:
@@ -188,24 +211,64 @@ def setup(
         if progress is not None:
             progress(f"preparing {name}", k + 1, total)
 
-    data = load_windows(
-        config.data,
-        config.sequences,
-        config.preprocess,
-        config.batch,
-        model.pca,
-        backbone,
-        frames=config.frames,
-        cache_dir=run_dir / "cache" if cache_dir is None else cache_dir,
-        progress=step,
-    )
+    def windows(root: str, sequences: tuple[str, ...]) -> BatchData:
+        return load_windows(
+            root,
+            sequences,
+            config.preprocess,
+            config.batch,
+            model.pca,
+            backbone,
+            frames=config.frames,
+            cache_dir=run_dir / "cache" if cache_dir is None else cache_dir,
+            progress=step,
+        )
+
+    hard = dataclasses.replace(config.batch, association="hard")
+    data = windows(config.data, config.sequences)
+    evaluate = Evaluator(data, hard)
+    val_set = None
+    if config.validation and validation:
+        root = config.validation_data or config.data
+        val = Evaluator(windows(root, config.validation), hard)
+        val_set = Validation(val, _gicp_reference(config, model, val, root))
     # Written last, so that a setup that fails does not bind the folder; rewritten when a
     # resumed run raises a count.
     path = run_dir / "config.yaml"
     if not resumed or config_dict(load_config(path, TrainConfig)) != config_dict(config):
         dump_config(config, path)
-    hard = dataclasses.replace(config.batch, association="hard")
-    return Problem(config, run_dir, model, data, Evaluator(data, hard))
+    reference = _gicp_reference(config, model, evaluate, config.data)
+    return Problem(config, run_dir, model, data, evaluate, reference, val_set)
+
+
+def selection(problem: Problem, value: float) -> dict[str, Any]:
+    """The exported model's provenance of how it was chosen: the objective, on which windows,
+    and its ``value`` there."""
+    config = problem.config
+    chosen = {"objective": config.objective, "selected_value": value}
+    if problem.validation is None:
+        return {**chosen, "selected_on": "training"}
+    return {**chosen, "selected_on": "validation",
+            "validation": {"data": config.validation_data or config.data,
+                           "sequences": list(config.validation)}}  # fmt: skip
+
+
+def _gicp_reference(
+    config: TrainConfig, model: GLOAMModel, evaluate: Evaluator, root: str
+) -> np.ndarray | None:
+    """Plain GICP's t_err on each window of ``evaluate`` (W,), for the ``gicp_ratio``
+    objective; None for ``t_err``."""
+    if config.objective != "gicp_ratio":
+        return None
+    t_err = evaluate(Learned(eps=jnp.asarray(model.eps, jnp.float32))).t_err
+    bad = [w.name for w, t in zip(evaluate.data.windows, t_err, strict=True) if not t > 0]
+    if bad:
+        raise InputError(
+            root,
+            f"plain GICP's t_err is zero or not finite on {', '.join(bad)}: the gicp_ratio "
+            "objective needs a positive reference on every window",
+        )
+    return np.asarray(t_err, np.float64)
 
 
 def write_history(run_dir: Path, history: list[dict[str, Any]]) -> None:

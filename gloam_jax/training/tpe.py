@@ -16,6 +16,7 @@ value, which is enqueued as trial 0.
 from __future__ import annotations
 
 import bisect
+import json
 import os
 import signal
 import socket
@@ -32,12 +33,14 @@ import numpy as np
 import optuna
 from optuna.trial import TrialState
 
+from gloam_jax import io
 from gloam_jax.errors import InputError
 from gloam_jax.learned import MLP, Learned
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.problem import (
     Problem,
     plot_histories,
+    selection,
     settings_hash,
     setup,
     write_history,
@@ -274,19 +277,29 @@ def _history(study: optuna.Study) -> list[dict]:
         return float(before[k] + min(t, merged[k][1]) - merged[k][0]) if k >= 0 else 0.0
 
     done = [t for t in trials if t.state == TrialState.COMPLETE]
-    history, best = [], np.inf
+    history, best, best_t_err = [], np.inf, np.inf
     for t in sorted(done, key=lambda t: (t.datetime_complete, t.number)):
-        best = min(best, t.value)
+        t_err = _t_err(t)
+        if t.value < best:
+            best, best_t_err = t.value, t_err
         history.append(
             {
                 "trial": t.number,
                 "wall_s": covered(t.datetime_complete.timestamp()),
-                "t_err": t.value,
+                "objective": t.value,
+                "t_err": t_err,
                 "r_err": t.user_attrs.get("r_err"),
-                "best_t_err": best,
+                "best": best,
+                "best_t_err": best_t_err,
             }
         )
     return history
+
+
+def _t_err(trial: optuna.trial.FrozenTrial) -> float:
+    """A trial's training t_err (its value, the objective, in studies from before the
+    objective setting, which were all t_err)."""
+    return trial.user_attrs.get("t_err", trial.value)
 
 
 def _objective(problem: Problem) -> Callable[[optuna.Trial], float]:
@@ -296,11 +309,12 @@ def _objective(problem: Problem) -> Callable[[optuna.Trial], float]:
     def objective(trial: optuna.Trial) -> float:
         values = {n: trial.suggest_float(n, v - bound, v + bound) for n, v in init.items()}
         trial.set_user_attr("worker", f"{host}:{pid}")  # which worker runs it, once it has weights
-        t_err, r_err = problem.training_loss(params_from_values(problem, values))
-        trial.set_user_attr("r_err", r_err)
-        if not np.isfinite(t_err):
-            raise optuna.TrialPruned(f"non-finite loss {t_err}")
-        return t_err
+        train = problem.training_loss(params_from_values(problem, values))
+        trial.set_user_attr("t_err", train.t_err)
+        trial.set_user_attr("r_err", train.r_err)
+        if not np.isfinite(train.objective):
+            raise optuna.TrialPruned(f"non-finite loss {train.objective}")
+        return train.objective
 
     return objective
 
@@ -336,7 +350,7 @@ def _worker_main() -> None:
     try:
         config = load_config(Path(run_dir) / "config.yaml", TrainConfig)
         storage = open_storage(config, run_dir)
-        problem = setup(config, run_dir, cache_dir=cache_dir or None)
+        problem = setup(config, run_dir, cache_dir=cache_dir or None, validation=False)
         run_trials(open_study(problem, storage, name, seeded=False), problem)
     except KeyboardInterrupt:
         raise SystemExit(130) from None
@@ -503,10 +517,29 @@ def _export(problem: Problem, study: optuna.Study) -> Any:
         problem.run_dir / "loss_curve.png",
         f"TPE, {problem.config.method}",
     )
-    best = study.best_trial
+    best, value = _select(problem, study)
     return problem.export(
         params_from_values(problem, best.params),
         problem.run_dir / "model.npz",
-        {"train_t_err": best.value, "trials": finished(study), "best_trial": best.number,
-         "wall_s": wall[-1], "study": study.study_name},
+        {"train_t_err": _t_err(best), "trials": finished(study), "best_trial": best.number,
+         "wall_s": wall[-1], "study": study.study_name, **selection(problem, value)},
     )  # fmt: skip
+
+
+def _select(problem: Problem, study: optuna.Study) -> tuple[optuna.trial.FrozenTrial, float]:
+    """The trial to export and its selection value: the best on the training objective, or,
+    with validation windows, the best on them among the ``tpe.validate_best`` best trials
+    (each listed in ``RUN/validation.json``)."""
+    if problem.validation is None:
+        return study.best_trial, study.best_value
+    done = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    candidates = sorted(done, key=lambda t: t.value)[: problem.config.tpe.validate_best]
+    rows = []
+    for t in candidates:
+        val = problem.validation_loss(params_from_values(problem, t.params))
+        rows.append({"trial": t.number, "objective": t.value, "t_err": _t_err(t),
+                     "val_objective": val.objective, "val_t_err": val.t_err,
+                     "val_r_err": val.r_err})  # fmt: skip
+    io.write_atomic(problem.run_dir / "validation.json", json.dumps(rows, indent=1))
+    k = int(np.argmin([r["val_objective"] for r in rows]))
+    return candidates[k], rows[k]["val_objective"]

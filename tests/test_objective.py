@@ -1,0 +1,109 @@
+"""The training objective (mean t_err, or each window's t_err relative to plain GICP's with a
+penalty on windows made worse) and the choice of the exported weights on validation windows."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from gloam_jax.errors import InputError
+from gloam_jax.features import get_backbone
+from gloam_jax.learned import Learned
+from gloam_jax.models import load_model, save_model
+from gloam_jax.training import batch
+from gloam_jax.training.config import GradConfig, TPEConfig, TrainConfig
+from gloam_jax.training.grad import train_grad
+from gloam_jax.training.objective import objective
+from gloam_jax.training.problem import fit_initial_model, setup
+from gloam_jax.training.tpe import train_tpe
+
+TINY = batch.BatchConfig(
+    rounds=2, max_source_points=200, segment_fractions=(0.3, 0.6), segment_step=2,
+    gicp=dataclasses.replace(batch.BatchConfig().gicp, adjoint="implicit"),
+)  # fmt: skip
+
+
+def test_objective_values():
+    t_err, gicp = np.array([0.02, 0.01]), np.array([0.01, 0.02])
+    assert float(objective(t_err)) == pytest.approx(0.015)
+    # Ratios 2 and 0.5: mean 1.25, and the first window's excess of 1, averaged over 2.
+    assert float(objective(t_err, gicp, 4.0)) == pytest.approx(1.25 + 4.0 * 0.5)
+    assert float(objective(gicp, gicp, 4.0)) == pytest.approx(1.0)
+    # A model better everywhere pays no penalty.
+    assert float(objective(0.5 * gicp, gicp, 4.0)) == pytest.approx(0.5)
+
+
+def test_settings_are_checked():
+    with pytest.raises(InputError, match="validation sequences 00 are also training"):
+        TrainConfig(data="d", sequences=("00", "01"), validation=("00",))
+    TrainConfig(data="d", sequences=("00",), validation=("00",), validation_data="other")
+    with pytest.raises(InputError, match="worse_penalty must be >= 0"):
+        TrainConfig(worse_penalty=-1.0)
+    with pytest.raises(InputError, match="tpe.validate_best must be >= 1"):
+        TPEConfig(validate_best=0)
+
+
+@pytest.fixture(scope="module")
+def roots(sim_sequence, tmp_path_factory):
+    """The simulated drive as training sequence 00 and, under another root, validation
+    sequence 05 (the same scans: what is checked here is the bookkeeping, not generalisation)."""
+    val = tmp_path_factory.mktemp("val")
+    (val / "sequences").mkdir()
+    (val / "sequences" / "05").symlink_to(sim_sequence / "sequences" / "00")
+    (val / "poses").mkdir()
+    (val / "poses" / "05.txt").symlink_to(sim_sequence / "poses" / "00.txt")
+    model = fit_initial_model(sim_sequence, ["00"], get_backbone("geometric"), every=10,
+                              init="gicp")  # fmt: skip
+    start = tmp_path_factory.mktemp("start") / "start.npz"
+    save_model(start, model)
+    return sim_sequence, val, start
+
+
+def _config(roots, **kw) -> TrainConfig:
+    train, val, start = roots
+    return TrainConfig(data=str(train), sequences=("00",), frames=8, init_model=str(start),
+                       batch=TINY, objective="gicp_ratio", validation=("05",),
+                       validation_data=str(val), **kw)  # fmt: skip
+
+
+def test_tpe_selects_on_validation_with_gicp_ratio(roots, tmp_path):
+    cfg = _config(roots, mode="tpe", tpe=TPEConfig(n_trials=4, validate_best=3))
+    problem = setup(cfg, tmp_path / "run", cache_dir=tmp_path / "cache")
+    # Plain GICP scores 1 on its own reference, on both window sets.
+    gicp = Learned(eps=problem.init_params.eps)
+    assert problem.training_loss(gicp).objective == pytest.approx(1.0, rel=1e-5)
+    assert problem.validation_loss(gicp).objective == pytest.approx(1.0, rel=1e-5)
+    assert problem.reference.shape == (1,) and problem.reference[0] > 0
+
+    trained = train_tpe(problem)
+    rows = json.loads((tmp_path / "run" / "validation.json").read_text())
+    history = json.loads((tmp_path / "run" / "history.json").read_text())
+    # The 3 best trials by the training objective were validated; the best there was exported.
+    best3 = sorted(history, key=lambda h: h["objective"])[:3]
+    assert sorted(r["trial"] for r in rows) == sorted(h["trial"] for h in best3)
+    chosen = min(rows, key=lambda r: r["val_objective"])
+    info = trained.provenance
+    assert info["best_trial"] == chosen["trial"] and info["selected_on"] == "validation"
+    assert info["selected_value"] == pytest.approx(chosen["val_objective"])
+    assert info["train_t_err"] == pytest.approx(chosen["t_err"])
+    assert info["validation"]["sequences"] == ["05"]
+    # The exported weights score what their trial logged.
+    loaded = load_model(tmp_path / "run" / "model.npz")
+    got = problem.validation_loss(problem.init_params._replace(
+        conversion=loaded.conversion, eigenvalue=loaded.eigenvalue))  # fmt: skip
+    assert got.objective == pytest.approx(chosen["val_objective"], rel=1e-5)
+
+
+def test_grad_selects_the_best_validated_step(roots, tmp_path):
+    cfg = _config(roots, mode="grad", grad=GradConfig(steps=2, eval_every=1, learning_rate=0.05))
+    problem = setup(cfg, tmp_path / "run", cache_dir=tmp_path / "cache")
+    trained = train_grad(problem)
+    history = json.loads((tmp_path / "run" / "history.json").read_text())
+    assert [h["step"] for h in history] == [0, 1, 2]
+    best = min(history, key=lambda h: h["val_objective"])
+    info = trained.provenance
+    assert info["selected_on"] == "validation"
+    assert info["selected_value"] == pytest.approx(best["val_objective"])
+    assert info["train_t_err"] == pytest.approx(best["t_err"])
+    assert history[-1]["best"] == pytest.approx(best["val_objective"])
