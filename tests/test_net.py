@@ -184,3 +184,11 @@ def test_train_backbone_resumes_to_the_same_weights(tmp_path):
                                                                            "pole"}  # fmt: skip
     result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "b"), "--crop", "300"])
     assert result.exit_code == 2 and "started with other crop" in result.output
+
+
+def test_shipped_network_loads_and_says_how_it_was_trained():
+    backbone = get_backbone("net")
+    assert backbone.options() == {"weights": "default"} and backbone.dim == 32
+    test = backbone.provenance["test"]
+    assert test["miou"] > 0.6 and test["scans"] > 0 and backbone.provenance["steps"] > 0
+    assert set(test["iou"]) <= set(CLASSES)
