@@ -197,17 +197,19 @@ def _expected_shapes(d: int) -> dict[str, tuple[int, ...]]:
 SHIPPED = "default"
 """The name that :func:`load_model` (and ``--weights``, ``model:`` in configs) resolves to the
 model trained and shipped with the package (``gloam_jax/data/gloam_default.npz``)."""
+# Every shipped model by name: "net" is GLOAM on the net backbone (configs/gloam_net.yaml).
+SHIPPED_MODELS = {SHIPPED: "gloam_default.npz", "net": "gloam_net.npz"}
 
 
-def shipped_model_path() -> Path:
-    """Path of the shipped model file (its provenance records how it was trained)."""
-    return Path(__file__).resolve().parent / "data" / "gloam_default.npz"
+def shipped_model_path(name: str = SHIPPED) -> Path:
+    """Path of a shipped model file (its provenance records how it was trained)."""
+    return Path(__file__).resolve().parent / "data" / SHIPPED_MODELS[name]
 
 
 def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
-    """Read a file written by :func:`save_model` (or ``"default"``: the shipped model); a bad
-    file is a one-line InputError."""
-    p = shipped_model_path() if str(path) == SHIPPED else Path(path)
+    """Read a file written by :func:`save_model` (or a name of :data:`SHIPPED_MODELS`: a
+    shipped model); a bad file is a one-line InputError."""
+    p = shipped_model_path(str(path)) if str(path) in SHIPPED_MODELS else Path(path)
     if not p.is_file():
         raise InputError(p, "model file not found")
     try:

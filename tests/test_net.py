@@ -192,3 +192,9 @@ def test_shipped_network_loads_and_says_how_it_was_trained():
     test = backbone.provenance["test"]
     assert test["miou"] > 0.6 and test["scans"] > 0 and backbone.provenance["steps"] > 0
     assert set(test["iou"]) <= set(CLASSES)
+    from gloam_jax.config import load_config
+    from gloam_jax.models import load_model
+
+    model = load_model(load_config("gloam_net").model)
+    assert model.backbone_name == "net" and model.backbone().dim == model.pca.input_dim
+    assert model.provenance["mode"] == "grad" and model.provenance["steps"] > 0
