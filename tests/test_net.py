@@ -123,10 +123,14 @@ def test_weights_round_trip_and_bad_files(tmp_path, weights):
 def test_net_backbone_inside_gloam_run(tmp_path, weights):
     # A folder of four scans of one scene, the sensor moving 0.3 m along x per scan.
     scene, _ = toy_scan(2, 6000)
-    side = scene[:1500].copy()
-    side[:, :3] = side[:, [1, 0, 2]] * [1.0, 0.0, 1.0] + [-7.0, 0.0, 0.0]  # a wall across x
-    side[:, 1] = np.random.default_rng(4).uniform(-8, 8, len(side))
-    scene = np.concatenate([scene, side])
+    rng = np.random.default_rng(4)
+    across = np.c_[
+        np.full(1500, -7.0),
+        rng.uniform(-8, 8, 1500),
+        rng.uniform(-1.7, 4, 1500),
+        rng.uniform(0, 1, 1500),
+    ]  # a wall across x, so that x is constrained
+    scene = np.concatenate([scene, across.astype(np.float32)])
     folder = tmp_path / "scans"
     folder.mkdir()
     for i in range(4):
