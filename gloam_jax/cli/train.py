@@ -31,7 +31,7 @@ def init_model(
     sequences: Annotated[list[str], typer.Argument(help="Training sequence ids.")],
     out: Annotated[Path, typer.Option(help="Model file to write (.npz).")] = Path("model.npz"),
     every: Annotated[int, typer.Option(min=1, help="Use every N-th scan for the PCA.")] = 25,
-    backbone: Annotated[str, typer.Option(help="Feature backbone: geometric.")] = "geometric",
+    backbone: Annotated[str, typer.Option(help="Feature backbone: geometric, net.")] = "geometric",
     features: Annotated[
         Path | None, typer.Option(help="Fit on per-scan feature files here instead.")
     ] = None,
