@@ -40,7 +40,8 @@ def one_run(args, workers: int, scratch: Path, k: int) -> dict:
                "--cache", str(args.cache), "--trials", str(args.trials),
                "--workers", str(workers)]  # fmt: skip
     if args.storage:
-        command += ["--storage", args.storage, "--study-name", f"bench-{os.getpid()}-{k}"]
+        # A fresh study per run: a name shared by two runs would let the second find it full.
+        command += ["--storage", args.storage, "--study-name", f"bench-{os.getpid()}-{k}-w{workers}"]
     load = os.getloadavg()[0]
     start = time.perf_counter()
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
