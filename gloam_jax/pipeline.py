@@ -34,7 +34,7 @@ from gloam_jax.datasets import Dataset, open_dataset
 from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone, get_backbone
 from gloam_jax.odometry import Odometry, OdometryConfig
-from gloam_jax.preprocess import detect_time_convention, resolve_deskew
+from gloam_jax.preprocess import ONE_INSTANT, detect_time_convention, resolve_deskew
 
 
 def select_frames(n: int, start: int = 0, frames: int | None = None, stride: int = 1) -> range:
@@ -82,6 +82,11 @@ def plan_deskew(
         source = dataset.scan_path(first)
         record["time_convention"] = detect_time_convention(times, prep.sweep_duration, source)
         record["reason"] += f"; per-point times in {record['time_convention']}"
+        if record["time_convention"] == ONE_INSTANT:
+            record["reason"] += (
+                " (all equal: taken as deskewed already, so no point moves; set "
+                "preprocess.deskew: azimuth if these are raw spinning-sensor sweeps)"
+            )
     resolved = dataclasses.replace(config, preprocess=dataclasses.replace(prep, deskew=used))
     return resolved, record
 

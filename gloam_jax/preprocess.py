@@ -100,13 +100,18 @@ class PreprocessConfig:
 
 # Time units a per-point time column may come in, by how many of them make a second.
 _UNITS = (("s", 1.0), ("ms", 1e3), ("us", 1e6), ("ns", 1e9))
+# All per-point times equal: the sweep is one instant (deskewed already, or a simulator
+# without motion distortion); deskewing by times then moves no point.
+ONE_INSTANT = "one instant"
 
 
 def detect_time_convention(times: np.ndarray, sweep_duration: float, source=None) -> str:
     """Which convention per-point times follow, from their range: ``fraction [0, 1]``,
     ``s from start``, ``s from mid-sweep``, ``s before end``, ``absolute s``, and the same with
-    ``ms``, ``us`` or ``ns``. The span must be one sweep (a quarter to four times
-    ``sweep_duration``) in some unit, or [0, 1]; anything else is an InputError."""
+    ``ms``, ``us`` or ``ns``; or ``one instant`` when all are equal (a scan already deskewed,
+    or taken without motion distortion: nothing to undo). Otherwise the span must be one sweep
+    (a quarter to four times ``sweep_duration``) in some unit, or [0, 1]; anything else is an
+    InputError."""
     t = np.asarray(times)
     if t.size == 0:
         raise InputError(source, "no per-point times")
@@ -117,6 +122,8 @@ def detect_time_convention(times: np.ndarray, sweep_duration: float, source=None
         raise InputError(source, "per-point times contain NaN or infinite values")
     span = float(hi - lo)  # before float conversion: int64 nanoseconds stay exact
     lo, hi = float(lo), float(hi)
+    if span == 0:
+        return ONE_INSTANT
     if lo >= -1e-6 and hi <= 1 + 1e-6 and span >= 0.5:
         return "fraction [0, 1]"
     for unit, per_second in _UNITS:
@@ -145,6 +152,7 @@ def normalise_times(
     times: np.ndarray, sweep_duration: float, source=None
 ) -> tuple[np.ndarray, str]:
     """Per-point times in any convention -> (seconds from mid-sweep (N,) float64, convention).
+    Times that are all equal stay one instant: zeros, the scan is not deskewed.
 
     As KISS-ICP does, the times are mapped by their span onto one sweep: the earliest point
     at ``-sweep_duration / 2``, the latest at ``+sweep_duration / 2``, whatever their unit or
@@ -152,6 +160,8 @@ def normalise_times(
     """
     convention = detect_time_convention(times, sweep_duration, source)
     t = np.asarray(times)
+    if convention == ONE_INSTANT:
+        return np.zeros(t.shape), convention
     offset = t - t.min()  # in the stored type first: int64 nanoseconds stay exact
     fraction = offset.astype(np.float64) / float(offset.max())
     return (fraction - 0.5) * sweep_duration, convention

@@ -157,6 +157,26 @@ def test_undistorted_scans_in_a_folder_are_not_deskewed(undistorted, tmp_path):
     assert saved["deskew"] == result["deskew"]
 
 
+def test_times_that_are_all_equal_are_one_instant_and_deskew_nothing(undistorted, tmp_path):
+    """Per-point times with no span (a simulator without motion distortion writes zeros; a
+    driver may write one stamp for a deskewed scan) mean the sweep is one instant: auto keeps
+    the times, says so, and the poses are those of deskew off, not an error."""
+    for stamps in (np.zeros(7), np.full(7, 1_700_000_000_000_000_000, dtype=np.int64)):
+        assert detect_time_convention(stamps, 0.1) == "one instant"
+        normalised, found = normalise_times(stamps, 0.1)
+        assert found == "one instant" and np.array_equal(normalised, np.zeros(7))
+    times = np.load(sorted((undistorted / "sequences" / "00" / "timestamps").glob("*.npy"))[0])
+    assert times.size and np.ptp(times) == 0  # the simulator's undistorted scans
+    auto = run_sequence(undistorted, "00", OdometryConfig(), tmp_path / "auto", frames=4)
+    assert auto["deskew"]["used"] == "timestamps"
+    assert auto["deskew"]["time_convention"] == "one instant"
+    assert "deskew: azimuth" in auto["deskew"]["reason"]  # how to deskew raw sweeps instead
+    off = OdometryConfig(preprocess=PreprocessConfig(deskew="off"))
+    run_sequence(undistorted, "00", off, tmp_path / "off", frames=4)
+    read = [io.read_kitti_poses(tmp_path / k / "00_poses_kitti.txt") for k in ("auto", "off")]
+    np.testing.assert_allclose(read[0], read[1], atol=1e-9)
+
+
 @pytest.mark.parametrize(
     ("values", "message"),
     [
