@@ -27,7 +27,8 @@ def _valid_rows(xyz: np.ndarray) -> np.ndarray:
         return np.all(np.abs(xyz) <= MAX_COORDINATE, axis=1)  # NaN compares False
 
 
-def _check_shape(points: np.ndarray, source: str | None) -> np.ndarray:
+def check_points(points: np.ndarray, source: str | None = None) -> np.ndarray:
+    """``points`` as an array, or an InputError naming ``source`` unless it is (N, 3+), N > 0."""
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] < 3:
         raise InputError(source, f"expected an (N, 3+) point array, got shape {points.shape}")
@@ -39,7 +40,7 @@ def _check_shape(points: np.ndarray, source: str | None) -> np.ndarray:
 def drop_invalid(points: np.ndarray, source: str | None = None) -> tuple[np.ndarray, int]:
     """Remove rows with NaN, inf or coordinates beyond MAX_COORDINATE: (N, D) -> ((M, D),
     number removed). Empty input is an error."""
-    points = _check_shape(points, source)
+    points = check_points(points, source)
     kept = points[_valid_rows(points[:, :3])]
     if len(kept) == 0:
         raise InputError(
@@ -55,7 +56,7 @@ def range_mask(
     (mask (N,), number of invalid points (see :func:`drop_invalid`), which the mask also
     drops). One pass over the scan, for the per-frame path; bad shapes and empty or all-invalid
     scans are errors."""
-    points = _check_shape(points, source)
+    points = check_points(points, source)
     xyz = points[:, :3]
     valid = _valid_rows(xyz)
     invalid = int(np.count_nonzero(~valid))

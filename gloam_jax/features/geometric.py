@@ -189,9 +189,7 @@ class GeometricBackbone:
         frame: int | None = None,
     ) -> np.ndarray:
         """Features (N, D) float32 of a raw scan (N, 3+) ``x y z [intensity]``."""
-        scan = np.asarray(scan)
-        if scan.ndim != 2 or scan.shape[1] < 3:
-            raise InputError(path, f"expected an (N, 3+) scan, got shape {scan.shape}")
+        scan = pc.check_points(scan, path)
         finite = np.all(np.isfinite(scan[:, :3]), axis=1)
         if not finite.any():
             return np.zeros((len(scan), self.dim), np.float32)

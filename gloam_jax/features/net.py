@@ -311,7 +311,5 @@ class NetBackbone:
         frame: int | None = None,
     ) -> np.ndarray:
         """Features (N, embed) float32 of a raw scan (N, 3+) ``x y z [intensity]``."""
-        scan = np.asarray(scan)
-        if scan.ndim != 2 or scan.shape[1] < 3:
-            raise InputError(path, f"expected an (N, 3+) scan, got shape {scan.shape}")
+        scan = pc.check_points(scan, path)
         return run_scan(self.net, scan)[0]
