@@ -15,11 +15,11 @@ import argparse
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 
 import numpy as np
+from make_tables import commit
 
 from gloam_jax.features import get_backbone
 from gloam_jax.io import KittiSequence, write_atomic
@@ -51,8 +51,6 @@ def main() -> None:
     rows = {name: {"median_ms": float(np.median(t)), "mean_ms": float(np.mean(t))}
             for name, t in times.items()}  # fmt: skip
     ratio = rows["net"]["median_ms"] / rows["geometric"]["median_ms"]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True).stdout.strip()  # fmt: skip
     table = ["| backbone | median ms / scan | mean ms / scan |", "|---|---|---|"]
     table += [f"| {n} | {r['median_ms']:.0f} | {r['mean_ms']:.0f} |" for n, r in rows.items()]
     table.append(f"\nnet / geometric (medians): {ratio:.2f}; {args.scans} scans of "
@@ -61,7 +59,7 @@ def main() -> None:
     if args.out:
         record = {
             "command": "python " + " ".join(sys.argv),
-            "commit": commit,
+            "commit": commit(),
             "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
             "scans": args.scans,
             "mean_points": float(np.mean(points[1:])),

@@ -24,13 +24,9 @@ import time
 from pathlib import Path
 
 import numpy as np
+from make_tables import commit
 
 from gloam_jax.io import write_atomic
-
-
-def commit() -> str:
-    out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
-    return out.stdout.strip() or "unknown"
 
 
 def one_run(args, workers: int, scratch: Path, k: int) -> dict:
@@ -41,7 +37,8 @@ def one_run(args, workers: int, scratch: Path, k: int) -> dict:
                "--workers", str(workers)]  # fmt: skip
     if args.storage:
         # A fresh study per run: a name shared by two runs would let the second find it full.
-        command += ["--storage", args.storage, "--study-name", f"bench-{os.getpid()}-{k}-w{workers}"]
+        study = f"bench-{os.getpid()}-{k}-w{workers}"
+        command += ["--storage", args.storage, "--study-name", study]
     load = os.getloadavg()[0]
     start = time.perf_counter()
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)
@@ -70,8 +67,8 @@ def main() -> None:
                 rows.append(one_run(args, workers, Path(scratch), k))
                 print(rows[-1], flush=True)
     median = {c: float(np.median([r["wall_s"] for r in rows if r["workers"] == c])) for c in counts}
-    summary = {c: {"median_wall_s": median[c], "ratio_to_first": round(median[c] / median[counts[0]], 3)}
-               for c in counts}  # fmt: skip
+    ratio = {c: round(median[c] / median[counts[0]], 3) for c in counts}
+    summary = {c: {"median_wall_s": median[c], "ratio_to_first": ratio[c]} for c in counts}
     print(json.dumps(summary, indent=1))
     if args.out is not None:
         result = {
