@@ -138,8 +138,6 @@ def method_settings(config: Path | None, method: str | None, weights: Path | Non
     return settings
 
 
-
-
 @app.command(
     epilog=(
         "Examples:\n\n"

@@ -26,17 +26,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jax.typing import ArrayLike
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
+from jax.typing import ArrayLike
 
 from gloam_jax import geometry as geo
 from gloam_jax.errors import InputError
 from gloam_jax.gicp import Cloud, GICPConfig, gicp_round
 from gloam_jax.io import lidar_to_cam_poses
 from gloam_jax.learned import Learned, attributes
-from gloam_jax.training.objective import objective
 from gloam_jax.training.losses import TRAINING_FRACTIONS, SegmentPlan, chain, segment_errors
+from gloam_jax.training.objective import objective
 
 
 def _batch_gicp() -> GICPConfig:

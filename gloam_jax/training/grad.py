@@ -221,6 +221,10 @@ def train_grad(
     return problem.export(
         best_params,
         run_dir / "model.npz",
-        {"train_t_err": best_t_err, "steps": step, "wall_s": history[-1]["wall_s"],
-         **selection(problem, best)},  # fmt: skip
+        {
+            "train_t_err": best_t_err,
+            "steps": step,
+            "wall_s": history[-1]["wall_s"],
+            **selection(problem, best),
+        },  # fmt: skip
     )
