@@ -84,6 +84,7 @@ class GLOAMModel:
 
 
 INITS = ("random", "gicp")
+CONVERSION_INIT_SCALE = 0.01  # init "gicp": association features of ~1 cm against metres
 
 
 def init_model(
@@ -98,10 +99,12 @@ def init_model(
     """A model with initialised MLPs around a fitted PCA.
 
     ``init="random"``: both MLPs as :meth:`MLP.init`. ``init="gicp"``: a start at plain GICP,
-    for training: output weights scaled by 0.1, the eigenvalue MLP's output bias at
-    (0, 1, 1), so Algorithm 1 gives nearly GICP's plane (eps, 1, 1) / sqrt(2), and the
-    conversion MLP's features nearly constant, so association is nearly xyz-nearest. (Not
-    exactly: with equal features the association has no gradient.)
+    for training. The eigenvalue MLP's output weights are zero and its bias is (eps, 1, 1), so
+    Algorithm 1 gives exactly GICP's plane (eps, 1, 1), up to the factor 1/sqrt(2 + eps^2)
+    that scales every covariance alike and leaves the registration unchanged; its gradient is
+    not zero (the hidden layer is). The conversion MLP's output weights are scaled by
+    :data:`CONVERSION_INIT_SCALE`: association features of centimetres, so association is
+    xyz-nearest but for near ties. (Equal features would give it no gradient at all.)
     """
     if pca.components.shape[0] != FEATURE_DIM:
         raise InputError(
@@ -115,9 +118,11 @@ def init_model(
     conversion = FeatureConversionMLP.init(k_conv)
     eigenvalue = EigenvalueEstimationMLP.init(k_eig)
     if init == "gicp":
-        conversion = conversion._replace(w2=0.1 * conversion.w2, b2=0.0 * conversion.b2)
-        plane = jnp.array([0.0, 1.0, 1.0], jnp.float32)
-        eigenvalue = eigenvalue._replace(w2=0.1 * eigenvalue.w2, b2=plane)
+        conversion = conversion._replace(
+            w2=CONVERSION_INIT_SCALE * conversion.w2, b2=jnp.zeros_like(conversion.b2)
+        )
+        plane = jnp.array([eps, 1.0, 1.0], jnp.float32)
+        eigenvalue = eigenvalue._replace(w2=jnp.zeros_like(eigenvalue.w2), b2=plane)
     return GLOAMModel(
         pca=pca,
         conversion=conversion,

@@ -78,6 +78,15 @@ def test_learned_plane_eigenvalues_give_plain_gicp(model):
     )
 
 
+def test_the_gicp_start_registers_as_plain_gicp(model):
+    # Training's start (init "gicp") is GICP itself, so a model chosen against it on validation
+    # can always fall back to it.
+    start = init_model(jax.random.PRNGKey(1), model.pca, init="gicp")
+    np.testing.assert_allclose(
+        _register(start, "gloam", T_TRUE), _register(None, "gicp", T_TRUE), atol=1e-5
+    )
+
+
 @pytest.mark.parametrize("method", ["gicp_da", "gicp_ce", "gloam"])
 def test_learned_methods_track_a_simulated_drive(sim_sequence, model, method):
     seq = io.KittiSequence(sim_sequence, "00")
