@@ -79,9 +79,10 @@ def test_tpe_selects_on_validation_with_gicp_ratio(roots, tmp_path):
     trained = train_tpe(problem)
     rows = json.loads((tmp_path / "run" / "validation.json").read_text())
     history = json.loads((tmp_path / "run" / "history.json").read_text())
-    # The 3 best trials by the training objective were validated; the best there was exported.
+    # The 3 best trials by the training objective and the start (trial 0, which validation
+    # may fall back to) were validated; the best there was exported.
     best3 = sorted(history, key=lambda h: h["objective"])[:3]
-    assert sorted(r["trial"] for r in rows) == sorted(h["trial"] for h in best3)
+    assert sorted(r["trial"] for r in rows) == sorted({0} | {h["trial"] for h in best3})
     chosen = min(rows, key=lambda r: r["val_objective"])
     info = trained.provenance
     assert info["best_trial"] == chosen["trial"] and info["selected_on"] == "validation"
@@ -93,6 +94,34 @@ def test_tpe_selects_on_validation_with_gicp_ratio(roots, tmp_path):
     got = problem.validation_loss(problem.init_params._replace(
         conversion=loaded.conversion, eigenvalue=loaded.eigenvalue))  # fmt: skip
     assert got.objective == pytest.approx(chosen["val_objective"], rel=1e-5)
+
+
+def test_tpe_validation_falls_back_to_the_start(tmp_path, monkeypatch):
+    """Trials better than the start on training but worse on validation: the start (trial 0)
+    is validated although not among the best, and exported."""
+    import types
+
+    import optuna
+
+    from gloam_jax.training import tpe
+    from gloam_jax.training.objective import Score
+
+    study = optuna.create_study()
+    for number, train in enumerate([1.0, 0.5, 0.6, 0.7]):
+        study.add_trial(optuna.trial.create_trial(
+            params={"n": float(number)}, value=train, user_attrs={"t_err": train},
+            distributions={"n": optuna.distributions.FloatDistribution(0, 9)}))  # fmt: skip
+    val = {0: 1.0, 1: 1.3, 2: 1.2, 3: 0.9}  # trial 3 is not among the 2 best on training
+    monkeypatch.setattr(tpe, "params_from_values", lambda problem, values: int(values["n"]))
+    problem = types.SimpleNamespace(
+        validation=True, run_dir=tmp_path,
+        config=types.SimpleNamespace(tpe=types.SimpleNamespace(validate_best=2)),
+        validation_loss=lambda n: Score(val[n], 0.01, 0.0, np.zeros(1)),
+    )  # fmt: skip
+    trial, value = tpe._select(problem, study)
+    assert trial.number == 0 and value == 1.0
+    rows = json.loads((tmp_path / "validation.json").read_text())
+    assert [r["trial"] for r in rows] == [1, 2, 0]
 
 
 def test_grad_selects_the_best_validated_step(roots, tmp_path):

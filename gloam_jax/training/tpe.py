@@ -528,12 +528,16 @@ def _export(problem: Problem, study: optuna.Study) -> Any:
 
 def _select(problem: Problem, study: optuna.Study) -> tuple[optuna.trial.FrozenTrial, float]:
     """The trial to export and its selection value: the best on the training objective, or,
-    with validation windows, the best on them among the ``tpe.validate_best`` best trials
-    (each listed in ``RUN/validation.json``)."""
+    with validation windows, the best on them among the ``tpe.validate_best`` best trials and
+    the start (trial 0), each listed in ``RUN/validation.json``. The start is always a
+    candidate, as step 0 is in gradient mode: from a ``gicp`` start validation can fall back
+    to plain GICP."""
     if problem.validation is None:
         return study.best_trial, study.best_value
     done = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     candidates = sorted(done, key=lambda t: t.value)[: problem.config.tpe.validate_best]
+    if all(t.number != 0 for t in candidates):
+        candidates += [t for t in done if t.number == 0]
     rows = []
     for t in candidates:
         val = problem.validation_loss(params_from_values(problem, t.params))
