@@ -68,12 +68,13 @@ def _config(roots, **kw) -> TrainConfig:
 
 
 def test_tpe_selects_on_validation_with_gicp_ratio(roots, tmp_path):
-    cfg = _config(roots, mode="tpe", tpe=TPEConfig(n_trials=4, validate_best=3))
+    cfg = _config(roots, mode="tpe", tpe=TPEConfig(n_trials=4, validate_best=3), min_gain=0.0)
     problem = setup(cfg, tmp_path / "run", cache_dir=tmp_path / "cache")
-    # Plain GICP scores 1 on its own reference, on both window sets.
-    gicp = Learned(eps=problem.init_params.eps)
-    assert problem.training_loss(gicp).objective == pytest.approx(1.0, rel=1e-5)
-    assert problem.validation_loss(gicp).objective == pytest.approx(1.0, rel=1e-5)
+    # Plain GICP scores 1 on its own reference, on both window sets, and so do the learned
+    # parts set to plain GICP (what a run falls back to).
+    for gicp in (Learned(eps=problem.init_params.eps), problem.plain_gicp()):
+        assert problem.training_loss(gicp).objective == pytest.approx(1.0, rel=1e-5)
+        assert problem.validation_loss(gicp).objective == pytest.approx(1.0, rel=1e-5)
     assert problem.reference.shape == (1,) and problem.reference[0] > 0
 
     trained = train_tpe(problem)
@@ -86,14 +87,28 @@ def test_tpe_selects_on_validation_with_gicp_ratio(roots, tmp_path):
     chosen = min(rows, key=lambda r: r["val_objective"])
     info = trained.provenance
     assert info["best_trial"] == chosen["trial"] and info["selected_on"] == "validation"
-    assert info["selected_value"] == pytest.approx(chosen["val_objective"])
-    assert info["train_t_err"] == pytest.approx(chosen["t_err"])
+    _check_choice(info, chosen["val_objective"], chosen["t_err"], problem)
     assert info["validation"]["sequences"] == ["05"]
-    # The exported weights score what their trial logged.
+    # The exported weights score what was selected.
     loaded = load_model(tmp_path / "run" / "model.npz")
     got = problem.validation_loss(problem.init_params._replace(
         conversion=loaded.conversion, eigenvalue=loaded.eigenvalue))  # fmt: skip
-    assert got.objective == pytest.approx(chosen["val_objective"], rel=1e-5)
+    assert got.objective == pytest.approx(info["selected_value"], rel=1e-5)
+
+
+def _check_choice(info, value, t_err, problem):
+    """The learned candidate (validation ``value``, training ``t_err``) was exported if it beat
+    plain GICP by min_gain on validation, else plain GICP was."""
+    gicp = problem.validation_loss(problem.plain_gicp()).objective
+    assert info["validation_gicp"] == pytest.approx(gicp, rel=1e-5)
+    if value < (1 - problem.config.min_gain) * gicp:
+        assert "fallback" not in info
+        assert info["selected_value"] == pytest.approx(value)
+        assert info["train_t_err"] == pytest.approx(t_err)
+    else:
+        assert info["fallback"]["from_value"] == pytest.approx(value)
+        assert info["selected_value"] == pytest.approx(gicp, rel=1e-5)
+        assert info["train_t_err"] == pytest.approx(float(np.mean(problem.reference)), rel=1e-5)
 
 
 def test_tpe_validation_falls_back_to_the_start(tmp_path, monkeypatch):
@@ -125,7 +140,8 @@ def test_tpe_validation_falls_back_to_the_start(tmp_path, monkeypatch):
 
 
 def test_grad_selects_the_best_validated_step(roots, tmp_path):
-    cfg = _config(roots, mode="grad", grad=GradConfig(steps=2, eval_every=1, learning_rate=0.05))
+    grad = GradConfig(steps=2, eval_every=1, learning_rate=0.05)
+    cfg = _config(roots, mode="grad", grad=grad, min_gain=0.0)
     problem = setup(cfg, tmp_path / "run", cache_dir=tmp_path / "cache")
     trained = train_grad(problem)
     history = json.loads((tmp_path / "run" / "history.json").read_text())
@@ -133,6 +149,51 @@ def test_grad_selects_the_best_validated_step(roots, tmp_path):
     best = min(history, key=lambda h: h["val_objective"])
     info = trained.provenance
     assert info["selected_on"] == "validation"
-    assert info["selected_value"] == pytest.approx(best["val_objective"])
-    assert info["train_t_err"] == pytest.approx(best["t_err"])
+    _check_choice(info, best["val_objective"], best["t_err"], problem)
     assert history[-1]["best"] == pytest.approx(best["val_objective"])
+
+
+def test_choose_keeps_weights_clearly_better_than_gicp():
+    import types
+
+    from gloam_jax.training.objective import Score
+    from gloam_jax.training.problem import choose
+
+    config = types.SimpleNamespace(min_gain=0.01, objective="gicp_ratio", data="d",
+                                   validation_data=None, validation=("05",))  # fmt: skip
+    problem = types.SimpleNamespace(
+        config=config, validation=True, reference=np.array([0.02, 0.04]),
+        plain_gicp=lambda: "gicp",
+        validation_loss=lambda p: Score(1.0 if p == "gicp" else np.nan, 0.03, 0.0, np.zeros(2)),
+        training_loss=lambda p: Score(1.0, 0.03, 0.0, np.zeros(2)),
+    )  # fmt: skip
+    params, info = choose(problem, "learned", 0.985, 0.025)
+    assert params == "learned" and info["selected_value"] == 0.985 and "fallback" not in info
+    assert info["train_t_err"] == 0.025 and info["validation_gicp"] == 1.0
+    params, info = choose(problem, "learned", 0.995, 0.025)  # better, but by less than 1 %
+    assert params == "gicp" and info["selected_value"] == 1.0 and info["train_t_err"] == 0.03
+    assert info["fallback"] == {"from_value": 0.995, "from_train_t_err": 0.025, "min_gain": 0.01}
+    # Without validation windows nothing to fall back on: the training choice stands.
+    problem.validation = None
+    params, info = choose(problem, "learned", 1.2, 0.025)
+    assert params == "learned" and info["selected_on"] == "training"
+
+
+def test_a_model_not_clearly_better_than_gicp_ships_as_gicp(roots, tmp_path):
+    """No trial can be 99 % better than GICP: plain GICP is exported, and scores as GICP."""
+    tpe = TPEConfig(n_trials=2, validate_best=1)
+    problem = setup(_config(roots, mode="tpe", tpe=tpe, min_gain=0.99), tmp_path / "run",
+                    cache_dir=tmp_path / "cache")  # fmt: skip
+    info = train_tpe(problem).provenance
+    loaded = load_model(tmp_path / "run" / "model.npz")
+    assert info["fallback"]["min_gain"] == 0.99 and loaded.provenance == info
+    np.testing.assert_array_equal(np.asarray(loaded.conversion.w2), 0.0)
+    np.testing.assert_array_equal(np.asarray(loaded.eigenvalue.w2), 0.0)
+    np.testing.assert_allclose(np.asarray(loaded.eigenvalue.b2), [loaded.eps, 1.0, 1.0])
+    params = problem.init_params._replace(conversion=loaded.conversion,
+                                          eigenvalue=loaded.eigenvalue)  # fmt: skip
+    assert problem.validation_loss(params).objective == pytest.approx(1.0, rel=1e-5)
+    assert info["selected_value"] == pytest.approx(1.0, rel=1e-5)
+    assert info["train_t_err"] == pytest.approx(float(np.mean(problem.reference)), rel=1e-5)
+    with pytest.raises(InputError, match=r"min_gain must be in \[0, 1\), not 1.0"):
+        TrainConfig(min_gain=1.0)

@@ -202,11 +202,18 @@ def _train(config, mode, data, out, trials, seed, steps, learning_rate, cache, s
 
             model = train_grad(problem, tick)
     info = model.provenance
-    chosen = (
-        f"chosen on validation ({cfg.objective} {info['selected_value']:.4g}), training t_err"
-        if info["selected_on"] == "validation"
-        else "best training t_err"
-    )
+    if "fallback" in info:
+        chosen = (
+            f"plain GICP ({cfg.objective} {info['selected_value']:.4g} on validation; the best "
+            f"learned weights, {info['fallback']['from_value']:.4g}, not {100 * cfg.min_gain:g} "
+            "% better), training t_err"
+        )
+    elif info["selected_on"] == "validation":
+        chosen = (
+            f"chosen on validation ({cfg.objective} {info['selected_value']:.4g}), training t_err"
+        )
+    else:
+        chosen = "best training t_err"
     console.print(
         f"{cfg.mode}: {chosen} {100 * info['train_t_err']:.3f} % "
         f"({info['wall_s']:.0f} s of training); model: {out / 'model.npz'}, "

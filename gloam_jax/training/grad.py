@@ -39,8 +39,8 @@ from gloam_jax.training import batch
 from gloam_jax.training.problem import (
     Clock,
     Problem,
+    choose,
     plot_histories,
-    selection,
     write_history,
 )
 
@@ -218,13 +218,7 @@ def train_grad(
     )  # fmt: skip
     if not np.isfinite(best):
         raise InputError(run_dir, "training produced no finite loss")
+    params, chosen = choose(problem, best_params, best, best_t_err)
     return problem.export(
-        best_params,
-        run_dir / "model.npz",
-        {
-            "train_t_err": best_t_err,
-            "steps": step,
-            "wall_s": history[-1]["wall_s"],
-            **selection(problem, best),
-        },  # fmt: skip
+        params, run_dir / "model.npz", {"steps": step, "wall_s": history[-1]["wall_s"], **chosen}
     )

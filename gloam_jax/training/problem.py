@@ -101,6 +101,25 @@ class Problem:
         result = self.evaluate_hard(params)
         return score(result.t_err, result.r_err, self.reference, self.config.worse_penalty)
 
+    def plain_gicp(self) -> Learned | None:
+        """:attr:`init_params` set to register exactly as plain GICP: constant association
+        features (xyz-nearest association) and Algorithm 1's eigenvalues the plane (eps, 1, 1),
+        GICP's covariances up to one common scale. None when the eigenvalue MLP is trained but
+        the configured regulariser is not the plane, which it cannot reproduce."""
+        p = self.init_params
+        if p.eigenvalue is not None and self.config.preprocess.regularizer != "plane":
+            return None
+        if p.conversion is not None:
+            zero = jnp.zeros_like
+            p = p._replace(conversion=p.conversion._replace(w2=zero(p.conversion.w2),
+                                                            b2=zero(p.conversion.b2)))  # fmt: skip
+        if p.eigenvalue is not None:
+            plane = jnp.array([self.model.eps, 1.0, 1.0], p.eigenvalue.b2.dtype)
+            p = p._replace(
+                eigenvalue=p.eigenvalue._replace(w2=jnp.zeros_like(p.eigenvalue.w2), b2=plane)
+            )
+        return p
+
     def validation_loss(self, params: Learned) -> Score | None:
         """As :meth:`training_loss` on the validation windows; None without them."""
         if self.validation is None:
@@ -239,6 +258,27 @@ def setup(
         dump_config(config, path)
     reference = _gicp_reference(config, model, evaluate, config.data)
     return Problem(config, run_dir, model, data, evaluate, reference, val_set)
+
+
+def choose(
+    problem: Problem, params: Learned, value: float, train_t_err: float
+) -> tuple[Learned, dict[str, Any]]:
+    """The weights to export and how they were chosen (provenance): ``params``, selected with
+    ``value`` and training t_err ``train_t_err``; or, with validation windows, plain GICP
+    (:meth:`Problem.plain_gicp`) unless ``value`` is below GICP's validation objective by
+    ``min_gain`` (a fraction of it). So a model that validation finds worse than GICP, or
+    cannot tell from it, ships as GICP itself, not as the nearest learned weights."""
+    plain = None if problem.validation is None else problem.plain_gicp()
+    if plain is None:
+        return params, {"train_t_err": train_t_err, **selection(problem, value)}
+    gicp = problem.validation_loss(plain).objective
+    if value < (1.0 - problem.config.min_gain) * gicp:
+        return params, {"train_t_err": train_t_err, **selection(problem, value),
+                        "validation_gicp": gicp}  # fmt: skip
+    fallback = {"validation_gicp": gicp, "fallback": {"from_value": value,
+                "from_train_t_err": train_t_err, "min_gain": problem.config.min_gain}}  # fmt: skip
+    return plain, {"train_t_err": problem.training_loss(plain).t_err,
+                   **selection(problem, gicp), **fallback}  # fmt: skip
 
 
 def selection(problem: Problem, value: float) -> dict[str, Any]:

@@ -39,8 +39,8 @@ from gloam_jax.learned import MLP, Learned
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.problem import (
     Problem,
+    choose,
     plot_histories,
-    selection,
     settings_hash,
     setup,
     write_history,
@@ -518,11 +518,12 @@ def _export(problem: Problem, study: optuna.Study) -> Any:
         f"TPE, {problem.config.method}",
     )
     best, value = _select(problem, study)
+    params, chosen = choose(problem, params_from_values(problem, best.params), value, _t_err(best))
     return problem.export(
-        params_from_values(problem, best.params),
+        params,
         problem.run_dir / "model.npz",
-        {"train_t_err": _t_err(best), "trials": finished(study), "best_trial": best.number,
-         "wall_s": wall[-1], "study": study.study_name, **selection(problem, value)},
+        {"trials": finished(study), "best_trial": best.number, "wall_s": wall[-1],
+         "study": study.study_name, **chosen},
     )  # fmt: skip
 
 
