@@ -8,9 +8,7 @@ from gloam_jax.simulate import simulate
 @pytest.fixture(scope="session", autouse=True)
 def session_cache(tmp_path_factory):
     """The user cache (scan cache, JAX compilation cache) in a folder of this session, not
-    ~/.cache: tests neither read what earlier runs left nor leave anything. (Turning the
-    compilation cache on for the whole suite made it slower, 787 s against 559 s: it writes
-    every small program to disk and few are compiled twice.)"""
+    ~/.cache: tests neither read what earlier runs left nor leave anything."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("user_cache")))
         yield
