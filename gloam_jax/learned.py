@@ -55,6 +55,12 @@ class MLP(NamedTuple):
         hidden = jax.nn.relu(geo.matmul(f[..., None, :], self.w1)[..., 0, :] + self.b1)
         return geo.matmul(hidden[..., None, :], self.w2)[..., 0, :] + self.b2
 
+    def constant(self, output: Array) -> MLP:
+        """This MLP with zero output weights and bias ``output`` (3,): it outputs ``output``
+        for every input, yet its output weights keep a gradient (the hidden layer is kept)."""
+        b2 = jnp.asarray(output, self.b2.dtype)
+        return self._replace(w2=jnp.zeros_like(self.w2), b2=b2)
+
 
 @jax.jit
 def _init_params(key: Array) -> tuple[Array, ...]:
@@ -74,6 +80,12 @@ class FeatureConversionMLP(MLP):
 
 class EigenvalueEstimationMLP(MLP):
     """PCA features (..., 6) -> raw eigenvalues (..., 3) for Algorithm 1 (Sec. III-D)."""
+
+
+def plane_output(eps: float | Array) -> Array:
+    """The eigenvalue MLP output (3,) that Algorithm 1 turns into GICP's plane (eps, 1, 1),
+    scaled by 1/sqrt(2 + eps^2) like every covariance, which leaves the registration as it is."""
+    return jnp.stack([jnp.asarray(eps, jnp.float32), jnp.float32(1.0), jnp.float32(1.0)])
 
 
 # Which learned parts each method uses: (data association, covariance estimation).
@@ -97,6 +109,17 @@ class Learned(NamedTuple):
     conversion: FeatureConversionMLP | None = None  # data association in [xyz, f] space
     eigenvalue: EigenvalueEstimationMLP | None = None  # covariances by Algorithm 1
     eps: float | Array = DEFAULT_EPS
+
+    def as_gicp(self) -> Learned:
+        """These parts set to register as plain GICP with the plane regulariser: constant
+        association features (xyz-nearest association) and the eigenvalue MLP at
+        :func:`plane_output` (GICP's covariances up to one common scale)."""
+        parts = self
+        if self.conversion is not None:
+            parts = parts._replace(conversion=self.conversion.constant(jnp.zeros(OUTPUT_DIM)))
+        if self.eigenvalue is not None:
+            parts = parts._replace(eigenvalue=self.eigenvalue.constant(plane_output(self.eps)))
+        return parts
 
     def for_method(self, method: str) -> Learned:
         """The parts that ``method`` (a key of :data:`METHODS`) uses; the others None."""

@@ -35,6 +35,7 @@ from gloam_jax.learned import (
     FeatureConversionMLP,
     Learned,
     check_method,
+    plane_output,
 )
 
 MODEL_FORMAT = "gloam-jax-model"
@@ -99,10 +100,9 @@ def init_model(
     """A model with initialised MLPs around a fitted PCA.
 
     ``init="random"``: both MLPs as :meth:`MLP.init`. ``init="gicp"``: a start at plain GICP,
-    for training. The eigenvalue MLP's output weights are zero and its bias is (eps, 1, 1), so
-    Algorithm 1 gives exactly GICP's plane (eps, 1, 1), up to the factor 1/sqrt(2 + eps^2)
-    that scales every covariance alike and leaves the registration unchanged; its gradient is
-    not zero (the hidden layer is). The conversion MLP's output weights are scaled by
+    for training. The eigenvalue MLP is constant at :func:`~gloam_jax.learned.plane_output`,
+    so Algorithm 1 gives exactly GICP's plane, and keeps a gradient. The conversion MLP's
+    output weights are scaled by
     :data:`CONVERSION_INIT_SCALE`: association features of centimetres, so association is
     xyz-nearest but for near ties. (Equal features would give it no gradient at all.)
     """
@@ -121,8 +121,7 @@ def init_model(
         conversion = conversion._replace(
             w2=CONVERSION_INIT_SCALE * conversion.w2, b2=jnp.zeros_like(conversion.b2)
         )
-        plane = jnp.array([eps, 1.0, 1.0], jnp.float32)
-        eigenvalue = eigenvalue._replace(w2=jnp.zeros_like(eigenvalue.w2), b2=plane)
+        eigenvalue = eigenvalue.constant(plane_output(eps))
     return GLOAMModel(
         pca=pca,
         conversion=conversion,

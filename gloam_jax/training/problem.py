@@ -102,23 +102,13 @@ class Problem:
         return score(result.t_err, result.r_err, self.reference, self.config.worse_penalty)
 
     def plain_gicp(self) -> Learned | None:
-        """:attr:`init_params` set to register exactly as plain GICP: constant association
-        features (xyz-nearest association) and Algorithm 1's eigenvalues the plane (eps, 1, 1),
-        GICP's covariances up to one common scale. None when the eigenvalue MLP is trained but
-        the configured regulariser is not the plane, which it cannot reproduce."""
+        """:attr:`init_params` set to register as plain GICP (:meth:`Learned.as_gicp`); None
+        when the eigenvalue MLP is trained but the configured regulariser is not the plane,
+        which it cannot reproduce."""
         p = self.init_params
         if p.eigenvalue is not None and self.config.preprocess.regularizer != "plane":
             return None
-        if p.conversion is not None:
-            zero = jnp.zeros_like
-            p = p._replace(conversion=p.conversion._replace(w2=zero(p.conversion.w2),
-                                                            b2=zero(p.conversion.b2)))  # fmt: skip
-        if p.eigenvalue is not None:
-            plane = jnp.array([self.model.eps, 1.0, 1.0], p.eigenvalue.b2.dtype)
-            p = p._replace(
-                eigenvalue=p.eigenvalue._replace(w2=jnp.zeros_like(p.eigenvalue.w2), b2=plane)
-            )
-        return p
+        return p.as_gicp()
 
     def validation_loss(self, params: Learned) -> Score | None:
         """As :meth:`training_loss` on the validation windows; None without them."""
