@@ -127,6 +127,25 @@ class Learned(NamedTuple):
         return Learned(self.conversion if da else None, self.eigenvalue if ce else None, self.eps)
 
 
+def without_gicp_constants(parts: Learned, regularizer: str) -> Learned:
+    """``parts`` less each MLP that registers exactly as plain GICP's own step does: a
+    conversion MLP with zero output weights (equal features for all points: xyz-nearest
+    association) and, under the ``plane`` regulariser, an eigenvalue MLP whose constant output
+    Algorithm 1 turns into a multiple of GICP's plane (:func:`plane_output`). A model exported
+    as the fall-back to GICP (:meth:`Learned.as_gicp`) then runs GICP's path itself, bit for
+    bit and without features, instead of its covariances scaled by 1/sqrt(2 + eps^2).
+    Reads concrete weights (host side), not traced ones."""
+    if parts.conversion is not None and not np.any(np.asarray(parts.conversion.w2)):
+        parts = parts._replace(conversion=None)
+    eig = parts.eigenvalue
+    if eig is not None and regularizer == "plane" and not np.any(np.asarray(eig.w2)):
+        values = np.maximum(np.sort(np.asarray(eig.b2, np.float64)), float(parts.eps))
+        plane = np.array([cov.PLANE_EPS, 1.0, 1.0])
+        if np.allclose(values / values[2], plane, rtol=1e-6, atol=0.0):
+            parts = parts._replace(eigenvalue=None)
+    return parts
+
+
 def attributes(
     values: Array, vectors: Array, pca_features: Array, learned: Learned, regularizer: str
 ) -> tuple[Array, Array]:

@@ -23,7 +23,7 @@ from gloam_jax import geometry as geo
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError, check_setting, is_int, is_positive
 from gloam_jax.gicp import GICPConfig, increment, retract_host
-from gloam_jax.learned import METHODS
+from gloam_jax.learned import without_gicp_constants
 from gloam_jax.models import GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
 from gloam_jax.preprocess import PreprocessConfig, preprocess_scan
@@ -172,8 +172,12 @@ class Odometry:
         if model is None and config.model is not None:
             model = load_model(config.model)
         self.model = model
-        self.learned = learned_parts(model, config.method)
-        self.needs_features = any(METHODS[config.method])
+        self.learned = without_gicp_constants(
+            learned_parts(model, config.method), config.preprocess.regularizer
+        )
+        self.needs_features = self.learned.conversion is not None or (
+            self.learned.eigenvalue is not None
+        )
         self._threads = ThreadpoolController()
         self.poses: list[np.ndarray] = []
         self.status: list[FrameStatus] = []

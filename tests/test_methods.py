@@ -87,6 +87,31 @@ def test_the_gicp_start_registers_as_plain_gicp(model):
     )
 
 
+def test_a_fallback_model_runs_gicps_own_path_bit_for_bit(sim_sequence, model):
+    # Training's fall-back exports the learned parts set to register as GICP (as_gicp):
+    # odometry must then be GICP exactly (not up to the 1/sqrt(2) covariance scale), and
+    # needs no features.
+    parts = model.learned.as_gicp()
+    fallback = dataclasses.replace(model, conversion=parts.conversion, eigenvalue=parts.eigenvalue)
+    seq = io.KittiSequence(sim_sequence, "00")
+    runs = {}
+    for method, m in (("gicp", None), ("gloam", fallback)):
+        odometry = Odometry(OdometryConfig(method=method), m)
+        assert not odometry.needs_features
+        for i in range(4):
+            odometry.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+        runs[method] = np.stack(odometry.poses)
+    np.testing.assert_array_equal(runs["gloam"], runs["gicp"])
+    # Anything else stays learned: an eigenvalue output off the plane, a live conversion MLP.
+    off = parts.eigenvalue._replace(b2=parts.eigenvalue.b2.at[1].set(0.9))
+    assert Odometry(OdometryConfig(method="gloam"),
+                    dataclasses.replace(fallback, eigenvalue=off)).needs_features  # fmt: skip
+    live = Odometry(
+        OdometryConfig(method="gloam"), dataclasses.replace(fallback, conversion=model.conversion)
+    )
+    assert live.learned.conversion is not None and live.learned.eigenvalue is None
+
+
 @pytest.mark.parametrize("method", ["gicp_da", "gicp_ce", "gloam"])
 def test_learned_methods_track_a_simulated_drive(sim_sequence, model, method):
     seq = io.KittiSequence(sim_sequence, "00")
