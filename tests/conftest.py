@@ -1,8 +1,15 @@
 """Fixtures shared by several test modules."""
 
-import pytest
+import os
 
-from gloam_jax.simulate import simulate
+# As the gloam command line sets it (gloam_jax/cli/__init__.py), before equinox loads: the
+# training step has no host callback, so JAX's compilation cache can keep it.
+os.environ.setdefault("EQX_ON_ERROR", "nan")
+
+import pytest  # noqa: E402
+
+from gloam_jax.cli.common import use_compilation_cache  # noqa: E402
+from gloam_jax.simulate import simulate  # noqa: E402
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -11,6 +18,9 @@ def session_cache(tmp_path_factory):
     ~/.cache: tests neither read what earlier runs left nor leave anything."""
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("user_cache")))
+        # On from the start, as in every gloam command: tests that build the same program
+        # (the same training step, the same batch evaluation) compile it once.
+        use_compilation_cache(True)
         yield
 
 

@@ -11,6 +11,7 @@ import pytest
 from typer.testing import CliRunner
 
 from gloam_jax.cli import app
+from gloam_jax.cli.common import cache_dir
 from gloam_jax.config import dump_config
 from gloam_jax.features import get_backbone
 from gloam_jax.learned import Learned
@@ -156,6 +157,20 @@ def test_grad_source_points_must_be_positive():
         GradConfig(source_points=0)
 
 
+def test_the_command_line_sets_equinox_errors_to_nan_unless_told_otherwise():
+    import os
+    import subprocess
+    import sys
+
+    probe = "import gloam_jax.cli, equinox._config as c; print(c.EQX_ON_ERROR)"
+    env = {k: v for k, v in os.environ.items() if k != "EQX_ON_ERROR"}
+    for setting, expected in ((None, "nan"), ("raise", "raise")):
+        run_env = env if setting is None else {**env, "EQX_ON_ERROR": setting}
+        out = subprocess.run([sys.executable, "-c", probe], env=run_env, capture_output=True,
+                             text=True, check=True)  # fmt: skip
+        assert out.stdout.strip() == expected
+
+
 def test_cli_train_and_a_changed_config(sim_sequence, tmp_path, model):
     cfg = _config(sim_sequence, tmp_path, model, mode="grad", grad=GradConfig(steps=1))
     dump_config(cfg, tmp_path / "train.yaml")
@@ -164,6 +179,9 @@ def test_cli_train_and_a_changed_config(sim_sequence, tmp_path, model):
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert (tmp_path / "run" / "model.npz").is_file()
+    # The compiled training step is in the compilation cache: a rerun loads it (no host
+    # callback in it: EQX_ON_ERROR=nan, as the command line sets it).
+    assert list((cache_dir() / "jax").glob("jit_update-*"))
     result = runner.invoke(app, [*args, "--mode", "tpe"])
     assert result.exit_code == 2
     assert "other settings (mode)" in result.output
