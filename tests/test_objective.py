@@ -38,6 +38,13 @@ def test_settings_are_checked():
     with pytest.raises(InputError, match="validation sequences 00 are also training"):
         TrainConfig(data="d", sequences=("00", "01"), validation=("00",))
     TrainConfig(data="d", sequences=("00",), validation=("00",), validation_data="other")
+    with pytest.raises(InputError, match="validation sequences 00 are also training"):
+        TrainConfig(data="d", sequences=("00",), validation=("00",), validation_data=["o", "d"])
+    assert TrainConfig(validation_data=["a", "b"]).validation_roots == ("a", "b")
+    assert TrainConfig(data="d", validation_data=None).validation_roots == ("d",)
+    for bad in ([], 3, ["a", 3]):
+        with pytest.raises(InputError, match="validation_data must be a root or a non-empty"):
+            TrainConfig(validation_data=bad)
     with pytest.raises(InputError, match="worse_penalty must be >= 0"):
         TrainConfig(worse_penalty=-1.0)
     with pytest.raises(InputError, match="tpe.validate_best must be >= 1"):
@@ -111,6 +118,32 @@ def _check_choice(info, value, t_err, problem):
         assert info["train_t_err"] == pytest.approx(float(np.mean(problem.reference)), rel=1e-5)
 
 
+def test_validation_over_several_roots_scores_their_windows_together(roots, tmp_path):
+    # A second draw of the validation world: the same scans, its ground truth stretched by 3 %,
+    # so GICP's error differs there. Scored together, each window counts once.
+    train, val, start = roots
+    other = tmp_path / "val_b"
+    (other / "sequences").mkdir(parents=True)
+    (other / "sequences" / "05").symlink_to(val / "sequences" / "05")
+    poses = np.loadtxt(val / "poses" / "05.txt").reshape(-1, 3, 4)
+    poses[:, :, 3] *= 1.03
+    (other / "poses").mkdir()
+    np.savetxt(other / "poses" / "05.txt", poses.reshape(-1, 12))
+    cfg = dataclasses.replace(_config(roots), objective="t_err")
+    gicp = Learned(eps=np.float32(1e-3))
+    alone = {}
+    for name, root in (("a", val), ("b", other)):
+        one = setup(dataclasses.replace(cfg, validation_data=str(root)), tmp_path / name,
+                    cache_dir=tmp_path / "cache")  # fmt: skip
+        alone[name] = one.validation_loss(gicp).t_err
+    assert alone["a"] != pytest.approx(alone["b"], rel=1e-3)
+    both = setup(dataclasses.replace(cfg, validation_data=[str(val), str(other)]),
+                 tmp_path / "ab", cache_dir=tmp_path / "cache")  # fmt: skip
+    assert len(both.validation.evaluate) == 2
+    got = both.validation_loss(gicp).t_err
+    assert got == pytest.approx((alone["a"] + alone["b"]) / 2, rel=1e-5)
+
+
 def test_tpe_validation_falls_back_to_the_start(tmp_path, monkeypatch):
     """Trials better than the start on training but worse on validation: the start (trial 0)
     is validated although not among the best, and exported."""
@@ -160,7 +193,7 @@ def test_choose_keeps_weights_clearly_better_than_gicp():
     from gloam_jax.training.problem import choose
 
     config = types.SimpleNamespace(min_gain=0.01, objective="gicp_ratio", data="d",
-                                   validation_data=None, validation=("05",))  # fmt: skip
+                                   validation_roots=("d",), validation=("05",))  # fmt: skip
     problem = types.SimpleNamespace(
         config=config, validation=True, reference=np.array([0.02, 0.04]),
         plain_gicp=lambda: "gicp",

@@ -84,7 +84,9 @@ class TrainConfig:
     # (None: data) among the candidates (TPE: its best tpe.validate_best trials; gradients:
     # every evaluated step); none: the best on the training windows. Never test sequences.
     validation: tuple[str, ...] = ()
-    validation_data: str | None = None  # KITTI-layout root of the validation sequences
+    # KITTI-layout root of the validation sequences, or a list of roots (simulation seeds of
+    # the same worlds) scored together, so that a choice must hold on every draw, not one.
+    validation_data: str | tuple[str, ...] | None = None
     # With validation: the chosen weights ship only if their validation objective is below plain
     # GICP's by this fraction, else plain GICP ships (training.problem.choose). The gicp start
     # scores within 0.5 % of GICP on validation (its association features differ by ~1 cm).
@@ -101,9 +103,29 @@ class TrainConfig:
             raise InputError(None, f"worse_penalty must be >= 0, not {self.worse_penalty}")
         if not 0 <= self.min_gain < 1:
             raise InputError(None, f"min_gain must be in [0, 1), not {self.min_gain}")
-        same_root = self.validation_data in (None, self.data)
+        roots = self.validation_data
+        if isinstance(roots, list | tuple):
+            roots = tuple(roots)
+            object.__setattr__(self, "validation_data", roots)
+        listed = isinstance(roots, tuple) and all(isinstance(r, str) for r in roots)
+        if not (roots is None or isinstance(roots, str) or (listed and roots)):
+            raise InputError(
+                None, f"validation_data must be a root or a non-empty list of roots, not {roots!r}"
+            )
+        same_root = self.data in self.validation_roots
         shared = sorted(set(self.validation) & set(self.sequences)) if same_root else []
         if shared:
             raise InputError(
                 None, f"validation sequences {', '.join(shared)} are also training sequences"
             )
+
+    @property
+    def validation_roots(self) -> tuple[str, ...]:
+        """The roots that hold the validation sequences: validation_data, or data."""
+        if self.validation_data is None:
+            return (self.data,)
+        return (
+            (self.validation_data,)
+            if isinstance(self.validation_data, str)
+            else self.validation_data
+        )

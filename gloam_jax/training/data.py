@@ -210,9 +210,18 @@ def _cache_keys(seq, frames, preprocess, config, pca, backbone) -> tuple[str, st
         "backbone": None if backbone is None else [backbone.name, backbone.options()],
     }
     h = hashlib.sha1(json.dumps(parts, sort_keys=True, default=str).encode())
-    if pca is not None:
-        for a in pca:
+    # What the window reads, so that new files in the same folder (a sequence simulated
+    # again, another ground truth) are not taken for the cached ones: the ground truth and
+    # calibration by value, the scans and their point times by size and modification time.
+    gt = seq.gt_poses_cam
+    arrays = [seq.Tr_cam_velo, None if gt is None else gt[frames.start : frames.stop]]
+    for a in [*arrays, *(pca if pca is not None else ())]:
+        if a is not None:
             h.update(np.ascontiguousarray(a, np.float64).tobytes())
+    files = [seq.scan_path(i) for i in frames]
+    files += [t for t in (seq.sequence_dir / "timestamps" / f"{p.stem}.npy" for p in files)
+              if t.exists()]  # fmt: skip
+    h.update(json.dumps([[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in files]).encode())
     scan_key = h.hexdigest()[:16]
     pair_parts = {
         "num_candidates": config.gicp.num_candidates,

@@ -69,10 +69,11 @@ def fit_initial_model(
 
 @dataclasses.dataclass
 class Validation:
-    """The validation windows' hard-association evaluator and plain GICP's t_err on each
+    """The validation windows' hard-association evaluators, one per root of
+    ``validation_data``, and plain GICP's t_err on each window of them all, in that order
     (W,) (the ``gicp_ratio`` objective's reference; None for ``t_err``)."""
 
-    evaluate: Evaluator
+    evaluate: list[Evaluator]
     reference: np.ndarray | None
 
 
@@ -114,10 +115,11 @@ class Problem:
         """As :meth:`training_loss` on the validation windows; None without them."""
         if self.validation is None:
             return None
-        result = self.validation.evaluate(params)
-        return score(
-            result.t_err, result.r_err, self.validation.reference, self.config.worse_penalty
+        results = [evaluate(params) for evaluate in self.validation.evaluate]
+        t_err, r_err = (
+            np.concatenate([getattr(r, k) for r in results]) for k in ("t_err", "r_err")
         )
+        return score(t_err, r_err, self.validation.reference, self.config.worse_penalty)
 
     def export(self, params: Learned, path: Path, extra: dict[str, Any]) -> GLOAMModel:
         """Write ``params`` as a model file with its provenance; returns the model."""
@@ -238,9 +240,12 @@ def setup(
     evaluate = Evaluator(data, hard)
     val_set = None
     if config.validation and validation:
-        root = config.validation_data or config.data
-        val = Evaluator(windows(root, config.validation), hard)
-        val_set = Validation(val, _gicp_reference(config, model, val, root))
+        roots = config.validation_roots
+        vals = [Evaluator(windows(root, config.validation), hard) for root in roots]
+        refs = [
+            _gicp_reference(config, model, val, root) for val, root in zip(vals, roots, strict=True)
+        ]
+        val_set = Validation(vals, None if refs[0] is None else np.concatenate(refs))
     # Written last, so that a setup that fails does not bind the folder; rewritten when a
     # resumed run raises a count.
     path = run_dir / "config.yaml"
@@ -279,7 +284,7 @@ def selection(problem: Problem, value: float) -> dict[str, Any]:
     if problem.validation is None:
         return {**chosen, "selected_on": "training"}
     return {**chosen, "selected_on": "validation",
-            "validation": {"data": config.validation_data or config.data,
+            "validation": {"data": list(config.validation_roots),
                            "sequences": list(config.validation)}}  # fmt: skip
 
 
