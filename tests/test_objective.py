@@ -142,6 +142,12 @@ def test_validation_over_several_roots_scores_their_windows_together(roots, tmp_
     assert len(both.validation.evaluate) == 2
     got = both.validation_loss(gicp).t_err
     assert got == pytest.approx((alone["a"] + alone["b"]) / 2, rel=1e-5)
+    # A root without the sequence stops the setup before any preparation.
+    (tmp_path / "empty" / "sequences").mkdir(parents=True)
+    missing = dataclasses.replace(cfg, validation_data=[str(val), str(tmp_path / "empty")])
+    with pytest.raises(InputError, match="sequence 05 not found"):
+        setup(missing, tmp_path / "missing", cache_dir=tmp_path / "no_cache")
+    assert not (tmp_path / "no_cache").exists()
 
 
 def test_tpe_validation_falls_back_to_the_start(tmp_path, monkeypatch):

@@ -193,6 +193,14 @@ def setup(
     validation windows (a TPE worker process, which does not export, skips them)."""
     run_dir = Path(run_dir)
     resumed = _check_run_dir(config, run_dir)
+    # Every sequence is found before the preparation (minutes to hours), not after it.
+    val_roots = config.validation_roots if validation and config.validation else ()
+    for root, names in [
+        (config.data, config.sequences),
+        *((r, config.validation) for r in val_roots),
+    ]:
+        for name in names:
+            io.KittiSequence(root, name)
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
