@@ -85,7 +85,8 @@ class TrainConfig:
     # every evaluated step); none: the best on the training windows. Never test sequences.
     validation: tuple[str, ...] = ()
     # KITTI-layout root of the validation sequences, or a list of roots (simulation seeds of
-    # the same worlds) scored together, so that a choice must hold on every draw, not one.
+    # the same worlds): each is scored on its own and the worst one chooses, so that a choice
+    # must hold on every draw, not on their average.
     validation_data: str | tuple[str, ...] | None = None
     # With validation: the chosen weights ship only if their validation objective is below plain
     # GICP's by this fraction, else plain GICP ships (training.problem.choose). The gicp start

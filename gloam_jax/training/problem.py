@@ -112,14 +112,25 @@ class Problem:
         return p.as_gicp()
 
     def validation_loss(self, params: Learned) -> Score | None:
-        """As :meth:`training_loss` on the validation windows; None without them."""
+        """As :meth:`training_loss` on the validation windows, with several roots the objective
+        of the worst root; None without them."""
         if self.validation is None:
             return None
         results = [evaluate(params) for evaluate in self.validation.evaluate]
         t_err, r_err = (
             np.concatenate([getattr(r, k) for r in results]) for k in ("t_err", "r_err")
         )
-        return score(t_err, r_err, self.validation.reference, self.config.worse_penalty)
+        penalty, reference = self.config.worse_penalty, self.validation.reference
+        together = score(t_err, r_err, reference, penalty)
+        if len(results) == 1:
+            return together
+        # Chosen on the worst root: weights must beat GICP on every simulation draw of the
+        # worlds, not on their average (a large gain on one draw hid a loss on another).
+        bounds = np.cumsum([len(r.t_err) for r in results])[:-1]
+        refs = [None] * len(results) if reference is None else np.split(reference, bounds)
+        worst = max(score(r.t_err, r.r_err, ref, penalty).objective
+                    for r, ref in zip(results, refs, strict=True))  # fmt: skip
+        return together._replace(objective=worst)
 
     def export(self, params: Learned, path: Path, extra: dict[str, Any]) -> GLOAMModel:
         """Write ``params`` as a model file with its provenance; returns the model."""
