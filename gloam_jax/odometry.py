@@ -13,7 +13,7 @@ world being the first frame's LiDAR frame. The velocity is the last frame-to-fra
 from __future__ import annotations
 
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -23,7 +23,7 @@ from gloam_jax import geometry as geo
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError, check_setting, is_int, is_positive
 from gloam_jax.gicp import GICPConfig, increment, retract_host
-from gloam_jax.learned import without_gicp_constants
+from gloam_jax.learned import METHODS, without_gicp_constants
 from gloam_jax.models import GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
 from gloam_jax.preprocess import PreprocessConfig, preprocess_scan
@@ -168,13 +168,17 @@ class Odometry:
     ) -> None:
         """``model`` (default: loaded from ``config.model``) holds the learned parts that
         ``config.method`` uses; those methods then need per-point features in register_frame."""
-        self.config = config
         if model is None and config.model is not None:
             model = load_model(config.model)
         self.model = model
         self.learned = without_gicp_constants(
             learned_parts(model, config.method), config.preprocess.regularizer
         )
+        if METHODS[config.method][0] and self.learned.conversion is None:
+            # The candidates are there for the learned association to choose among; without
+            # it (a fall-back model), GICP's single nearest neighbour, as gicp.yaml has it.
+            config = replace(config, gicp=replace(config.gicp, num_candidates=1))
+        self.config = config
         self.needs_features = self.learned.conversion is not None or (
             self.learned.eigenvalue is not None
         )
