@@ -1,15 +1,12 @@
 """Fixtures shared by several test modules."""
 
-import os
+import pytest
 
-# As the gloam command line sets it (gloam_jax/cli/__init__.py), before equinox loads: the
-# training step has no host callback, so JAX's compilation cache can keep it.
-os.environ.setdefault("EQX_ON_ERROR", "nan")
-
-import pytest  # noqa: E402
-
-from gloam_jax.cli.common import use_compilation_cache  # noqa: E402
-from gloam_jax.simulate import simulate  # noqa: E402
+# First, so that gloam_jax/cli/__init__.py sets EQX_ON_ERROR=nan before equinox loads, as in
+# the gloam command line: the training step has no host callback, and JAX's compilation cache
+# can keep it.
+from gloam_jax.cli.common import use_compilation_cache
+from gloam_jax.simulate import simulate
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -219,9 +219,9 @@ def _cache_keys(seq, frames, preprocess, config, pca, backbone) -> tuple[str, st
         if a is not None:
             h.update(np.ascontiguousarray(a, np.float64).tobytes())
     files = [seq.scan_path(i) for i in frames]
-    files += [t for t in (seq.sequence_dir / "timestamps" / f"{p.stem}.npy" for p in files)
-              if t.exists()]  # fmt: skip
-    h.update(json.dumps([[p.name, p.stat().st_size, p.stat().st_mtime_ns] for p in files]).encode())
+    files += [t for t in map(seq._times_path, frames) if t.exists()]
+    stats = [(p.name, p.stat()) for p in files]
+    h.update(json.dumps([[name, st.st_size, st.st_mtime_ns] for name, st in stats]).encode())
     scan_key = h.hexdigest()[:16]
     pair_parts = {
         "num_candidates": config.gicp.num_candidates,

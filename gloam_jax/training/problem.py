@@ -70,11 +70,11 @@ def fit_initial_model(
 @dataclasses.dataclass
 class Validation:
     """The validation windows' hard-association evaluators, one per root of
-    ``validation_data``, and plain GICP's t_err on each window of them all, in that order
-    (W,) (the ``gicp_ratio`` objective's reference; None for ``t_err``)."""
+    ``validation_data``, and for each plain GICP's t_err on its windows (W_root,) (the
+    ``gicp_ratio`` objective's reference; None for ``t_err``)."""
 
     evaluate: list[Evaluator]
-    reference: np.ndarray | None
+    references: list[np.ndarray | None]
 
 
 @dataclasses.dataclass
@@ -117,17 +117,15 @@ class Problem:
         if self.validation is None:
             return None
         results = [evaluate(params) for evaluate in self.validation.evaluate]
+        refs, penalty = self.validation.references, self.config.worse_penalty
+        if len(results) == 1:
+            return score(results[0].t_err, results[0].r_err, refs[0], penalty)
         t_err, r_err = (
             np.concatenate([getattr(r, k) for r in results]) for k in ("t_err", "r_err")
         )
-        penalty, reference = self.config.worse_penalty, self.validation.reference
-        together = score(t_err, r_err, reference, penalty)
-        if len(results) == 1:
-            return together
+        together = score(t_err, r_err, None if refs[0] is None else np.concatenate(refs), penalty)
         # Chosen on the worst root: weights must beat GICP on every simulation draw of the
         # worlds, not on their average (a large gain on one draw hid a loss on another).
-        bounds = np.cumsum([len(r.t_err) for r in results])[:-1]
-        refs = [None] * len(results) if reference is None else np.split(reference, bounds)
         worst = max(score(r.t_err, r.r_err, ref, penalty).objective
                     for r, ref in zip(results, refs, strict=True))  # fmt: skip
         return together._replace(objective=worst)
@@ -264,7 +262,7 @@ def setup(
         refs = [
             _gicp_reference(config, model, val, root) for val, root in zip(vals, roots, strict=True)
         ]
-        val_set = Validation(vals, None if refs[0] is None else np.concatenate(refs))
+        val_set = Validation(vals, refs)
     # Written last, so that a setup that fails does not bind the folder; rewritten when a
     # resumed run raises a count.
     path = run_dir / "config.yaml"
