@@ -3,6 +3,7 @@ penalty on windows made worse) and the choice of the exported weights on validat
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -45,6 +46,13 @@ def test_settings_are_checked():
     for bad in ([], 3, ["a", 3]):
         with pytest.raises(InputError, match="validation_data must be a root or a non-empty"):
             TrainConfig(validation_data=bad)
+        with pytest.raises(InputError, match="data must be a root or a non-empty"):
+            TrainConfig(data=bad)
+    # Several training roots: validation defaults to all of them.
+    assert TrainConfig(data=["a", "b"]).training_roots == ("a", "b")
+    assert TrainConfig(data=["a", "b"]).validation_roots == ("a", "b")
+    with pytest.raises(InputError, match="validation sequences 00 are also training"):
+        TrainConfig(data=["a", "b"], sequences=("00",), validation=("00",), validation_data="b")
     with pytest.raises(InputError, match="worse_penalty must be >= 0"):
         TrainConfig(worse_penalty=-1.0)
     with pytest.raises(InputError, match="tpe.validate_best must be >= 1"):
@@ -122,13 +130,7 @@ def test_validation_over_several_roots_scores_their_windows_together(roots, tmp_
     # A second draw of the validation world: the same scans, its ground truth stretched by 3 %,
     # so GICP's error differs there.
     train, val, start = roots
-    other = tmp_path / "val_b"
-    (other / "sequences").mkdir(parents=True)
-    (other / "sequences" / "05").symlink_to(val / "sequences" / "05")
-    poses = np.loadtxt(val / "poses" / "05.txt").reshape(-1, 3, 4)
-    poses[:, :, 3] *= 1.03
-    (other / "poses").mkdir()
-    np.savetxt(other / "poses" / "05.txt", poses.reshape(-1, 12))
+    other = _stretched_copy(val, "05", tmp_path / "val_b", 1.03)
     cfg = dataclasses.replace(_config(roots), objective="t_err")
     gicp = Learned(eps=np.float32(1e-3))
     both = setup(dataclasses.replace(cfg, validation_data=[str(val), str(other)]),
@@ -146,6 +148,40 @@ def test_validation_over_several_roots_scores_their_windows_together(roots, tmp_
     missing = dataclasses.replace(cfg, validation_data=[str(val), str(tmp_path / "empty")])
     with pytest.raises(InputError, match="sequence 05 not found"):
         setup(missing, tmp_path / "missing", cache_dir=tmp_path / "no_cache")
+    assert not (tmp_path / "no_cache").exists()
+
+
+def _stretched_copy(root: Path, name: str, out: Path, factor: float) -> Path:
+    """A second draw of ``root``'s sequence ``name`` under ``out``: the same scans, the ground
+    truth's translations scaled by ``factor``, so GICP's error differs there."""
+    (out / "sequences").mkdir(parents=True)
+    (out / "sequences" / name).symlink_to(root / "sequences" / name)
+    poses = np.loadtxt(root / "poses" / f"{name}.txt").reshape(-1, 3, 4)
+    poses[:, :, 3] *= factor
+    (out / "poses").mkdir()
+    np.savetxt(out / "poses" / f"{name}.txt", poses.reshape(-1, 12))
+    return out
+
+
+def test_training_over_several_roots_uses_every_window(roots, tmp_path):
+    train, _, _ = roots
+    other = _stretched_copy(train, "00", tmp_path / "train_b", 1.03)
+    cfg = dataclasses.replace(_config(roots), objective="t_err", validation=(),
+                              validation_data=None)  # fmt: skip
+    one = setup(cfg, tmp_path / "one", cache_dir=tmp_path / "cache")
+    two = setup(dataclasses.replace(cfg, data=[str(train), str(other)]), tmp_path / "two",
+                cache_dir=tmp_path / "cache")  # fmt: skip
+    gicp = Learned(eps=np.float32(1e-3))
+    a, both = one.evaluate_hard(gicp).t_err, two.evaluate_hard(gicp).t_err
+    assert [w.name for w in two.data.windows] == ["00", "00"]
+    # The first root's window as alone; the second its own (the cache key covers the poses).
+    assert both[0] == pytest.approx(a[0], rel=1e-6)
+    assert both[1] != pytest.approx(a[0], rel=1e-3)
+    assert two.training_loss(gicp).t_err == pytest.approx(float(np.mean(both)), rel=1e-6)
+    # Every root is checked before any preparation.
+    with pytest.raises(InputError, match="nowhere: dataset root not found"):
+        setup(dataclasses.replace(cfg, data=[str(train), str(tmp_path / "nowhere")]),
+              tmp_path / "missing", cache_dir=tmp_path / "no_cache")  # fmt: skip
     assert not (tmp_path / "no_cache").exists()
 
 

@@ -68,7 +68,9 @@ class TrainConfig:
 
     mode: Literal["tpe", "grad"] = "grad"  # the paper's TPE search, or gradients through GICP
     method: Literal["gicp_da", "gicp_ce", "gloam"] = "gloam"  # which MLPs are trained
-    data: str = "data/protocol"  # KITTI-layout root of the training sequences
+    # KITTI-layout root of the training sequences, or a list of roots (simulation seeds of the
+    # same worlds): every listed sequence of every root is a training window.
+    data: str | tuple[str, ...] = "data/protocol"
     sequences: tuple[str, ...] = TRAIN_SEQUENCES  # training sequences of data
     frames: int | None = None  # first N scans of each sequence (None: all)
     init_model: str | None = None  # start from this model file (its PCA and MLPs)
@@ -81,8 +83,9 @@ class TrainConfig:
     objective: Literal["t_err", "gicp_ratio"] = "t_err"
     worse_penalty: float = 4.0  # gicp_ratio: weight of the windows' excess over GICP
     # The exported weights are the best on these validation sequences of validation_data
-    # (None: data) among the candidates (TPE: its best tpe.validate_best trials; gradients:
-    # every evaluated step); none: the best on the training windows. Never test sequences.
+    # (None: the roots of data) among the candidates (TPE: its best tpe.validate_best trials;
+    # gradients: every evaluated step); none: the best on the training windows. Never test
+    # sequences.
     validation: tuple[str, ...] = ()
     # KITTI-layout root of the validation sequences, or a list of roots (simulation seeds of
     # the same worlds): each is scored on its own and the worst one chooses, so that a choice
@@ -104,16 +107,12 @@ class TrainConfig:
             raise InputError(None, f"worse_penalty must be >= 0, not {self.worse_penalty}")
         if not 0 <= self.min_gain < 1:
             raise InputError(None, f"min_gain must be in [0, 1), not {self.min_gain}")
-        roots = self.validation_data
-        if isinstance(roots, list | tuple):
-            roots = tuple(roots)
-            object.__setattr__(self, "validation_data", roots)
-        listed = isinstance(roots, tuple) and all(isinstance(r, str) for r in roots)
-        if not (roots is None or isinstance(roots, str) or (listed and roots)):
-            raise InputError(
-                None, f"validation_data must be a root or a non-empty list of roots, not {roots!r}"
-            )
-        same_root = self.data in self.validation_roots
+        for name in ("data", "validation_data"):
+            roots = getattr(self, name)
+            if name == "validation_data" and roots is None:
+                continue
+            object.__setattr__(self, name, as_roots(roots, name))
+        same_root = set(self.training_roots) & set(self.validation_roots)
         shared = sorted(set(self.validation) & set(self.sequences)) if same_root else []
         if shared:
             raise InputError(
@@ -121,12 +120,29 @@ class TrainConfig:
             )
 
     @property
+    def training_roots(self) -> tuple[str, ...]:
+        """The roots that hold the training sequences."""
+        return (self.data,) if isinstance(self.data, str) else self.data
+
+    @property
     def validation_roots(self) -> tuple[str, ...]:
-        """The roots that hold the validation sequences: validation_data, or data."""
+        """The roots that hold the validation sequences: validation_data, or data's."""
         if self.validation_data is None:
-            return (self.data,)
+            return self.training_roots
         return (
             (self.validation_data,)
             if isinstance(self.validation_data, str)
             else self.validation_data
         )
+
+
+def as_roots(value: object, name: str) -> str | tuple[str, ...]:
+    """``value`` as one root (a string) or a non-empty tuple of them; a one-line error
+    naming ``name`` otherwise."""
+    if isinstance(value, list | tuple):
+        value = tuple(value)
+        if value and all(isinstance(r, str) for r in value):
+            return value
+    elif isinstance(value, str):
+        return value
+    raise InputError(None, f"{name} must be a root or a non-empty list of roots, not {value!r}")

@@ -259,7 +259,7 @@ def _load_pairs(path: Path) -> PreparedPairs:
 
 
 def load_windows(
-    root: str | Path,
+    root: str | Path | Sequence[str | Path],
     sequences: Sequence[str],
     preprocess: PreprocessConfig,
     config: BatchConfig,
@@ -270,12 +270,14 @@ def load_windows(
     cache_dir: str | Path | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> BatchData:
-    """Prepare the first ``frames`` scans (all by default) of each sequence under ``root`` and
-    stack them (:func:`stack`). With ``cache_dir``, prepared scans and pairs are saved there
-    (atomically, apart) and reused by later runs with the same settings and PCA."""
+    """Prepare the first ``frames`` scans (all by default) of each sequence under ``root`` (a
+    root, or several: each sequence of each, in that order) and stack them (:func:`stack`).
+    With ``cache_dir``, prepared scans and pairs are saved there (atomically, apart) and
+    reused by later runs with the same settings and PCA."""
     windows = []
-    for name in sequences:
-        seq = io.KittiSequence(root, name)
+    roots = [root] if isinstance(root, str | Path) else root
+    for seq_root, name in [(r, n) for r in roots for n in sequences]:
+        seq = io.KittiSequence(seq_root, name)
         window = range(0, len(seq) if frames is None else min(frames, len(seq)))
         scan_path = pair_path = None
         if cache_dir is not None:

@@ -14,7 +14,7 @@ import dataclasses
 import hashlib
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
@@ -38,7 +38,7 @@ Progress = Callable[[str, int, int], None]  # (what, done, total)
 
 
 def fit_initial_model(
-    root: str | Path,
+    root: str | Path | Sequence[str | Path],
     sequences: list[str] | tuple[str, ...],
     extractor: Backbone,
     *,
@@ -48,11 +48,13 @@ def fit_initial_model(
     keep_backbone_options: bool = True,
     progress: Progress | None = None,
 ) -> GLOAMModel:
-    """Fit the frozen PCA on every ``every``-th scan of the training sequences and wrap it
-    with initialised MLPs (:func:`gloam_jax.models.init_model`)."""
+    """Fit the frozen PCA on every ``every``-th scan of the training sequences (of ``root``, or
+    of each of several roots) and wrap it with initialised MLPs
+    (:func:`gloam_jax.models.init_model`)."""
     rows = []
-    for name in sequences:
-        seq = io.KittiSequence(root, name)
+    roots = [root] if isinstance(root, str | Path) else root
+    for seq_root, name in [(r, n) for r in roots for n in sequences]:
+        seq = io.KittiSequence(seq_root, name)
         frames = range(0, len(seq), every)
         for k, i in enumerate(frames):
             rows.append(extractor(seq.scan(i), path=seq.scan_path(i), frame=i))
@@ -205,7 +207,7 @@ def setup(
     # Every sequence is found before the preparation (minutes to hours), not after it.
     val_roots = config.validation_roots if validation and config.validation else ()
     for root, names in [
-        (config.data, config.sequences),
+        *((r, config.sequences) for r in config.training_roots),
         *((r, config.validation) for r in val_roots),
     ]:
         for name in names:
@@ -224,7 +226,7 @@ def setup(
     else:
         extractor = get_backbone("geometric")
         model = fit_initial_model(
-            config.data,
+            config.training_roots,
             config.sequences,
             extractor,
             every=config.pca_every,
@@ -239,7 +241,7 @@ def setup(
         if progress is not None:
             progress(f"preparing {name}", k + 1, total)
 
-    def windows(root: str, sequences: tuple[str, ...]) -> BatchData:
+    def windows(root: str | tuple[str, ...], sequences: tuple[str, ...]) -> BatchData:
         return load_windows(
             root,
             sequences,
@@ -253,7 +255,7 @@ def setup(
         )
 
     hard = dataclasses.replace(config.batch, association="hard")
-    data = windows(config.data, config.sequences)
+    data = windows(config.training_roots, config.sequences)
     evaluate = Evaluator(data, hard)
     val_set = None
     if config.validation and validation:
@@ -268,7 +270,7 @@ def setup(
     path = run_dir / "config.yaml"
     if not resumed or config_dict(load_config(path, TrainConfig)) != config_dict(config):
         dump_config(config, path)
-    reference = _gicp_reference(config, model, evaluate, config.data)
+    reference = _gicp_reference(config, model, evaluate, ", ".join(config.training_roots))
     return Problem(config, run_dir, model, data, evaluate, reference, val_set)
 
 
