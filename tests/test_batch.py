@@ -159,28 +159,20 @@ def test_damaged_checkpoint_is_a_one_line_input_error(tmp_path):
         assert "\n" not in str(err.value) and str(path) in str(err.value), n
 
 
-def test_ctrl_c_checkpoints_the_last_completed_step(sim_sequence, tmp_path):
+def test_ctrl_c_checkpoints_the_last_completed_step(tiny_training, tmp_path):
     """KeyboardInterrupt after step 1 writes step 1 (checkpoints otherwise every 10 steps)
     and propagates; a rerun resumes there, and Ctrl-C inside its step 2 (during the
     evaluation) leaves step 1 as the checkpoint, not half of step 2."""
     import json
 
-    from gloam_jax.features import get_backbone
-    from gloam_jax.models import save_model
-    from gloam_jax.training.config import GradConfig, TrainConfig
+    from gloam_jax.training.config import GradConfig
     from gloam_jax.training.grad import CHECKPOINT, load_checkpoint, train_grad
-    from gloam_jax.training.problem import fit_initial_model, setup
+    from gloam_jax.training.problem import setup
 
-    model = fit_initial_model(sim_sequence, ["00"], get_backbone("geometric"), every=20,
-                              init="gicp")  # fmt: skip
-    save_model(tmp_path / "start.npz", model)
-    config = batch.BatchConfig(rounds=2, max_source_points=200, segment_fractions=(0.3, 0.6),
-                               segment_step=2)  # fmt: skip
-    cfg = TrainConfig(
-        mode="grad", method="gicp_ce", data=str(sim_sequence), sequences=("00",), frames=5,
-        init_model=str(tmp_path / "start.npz"), batch=config,
-        grad=GradConfig(steps=3, eval_every=1, checkpoint_every=10, learning_rate=0.01),
-    )  # fmt: skip
+    # test_training's resume test takes the same steps (the same compiled program).
+    grad = GradConfig(steps=3, eval_every=1, checkpoint_every=10, learning_rate=0.01,
+                      source_points=64)  # fmt: skip
+    cfg = tiny_training.config(mode="grad", grad=grad)
     run, cache = tmp_path / "run", tmp_path / "cache"
 
     def ctrl_c_after(n):

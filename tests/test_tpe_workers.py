@@ -27,17 +27,10 @@ from typer.testing import CliRunner
 from gloam_jax.cli import app
 from gloam_jax.config import dump_config
 from gloam_jax.errors import InputError
-from gloam_jax.features import get_backbone
-from gloam_jax.models import load_model, save_model
-from gloam_jax.training import batch
+from gloam_jax.models import load_model
 from gloam_jax.training.config import TPEConfig, TrainConfig
-from gloam_jax.training.problem import fit_initial_model, setup
+from gloam_jax.training.problem import setup
 from gloam_jax.training.tpe import train_tpe
-
-TINY = batch.BatchConfig(
-    rounds=2, max_source_points=200, association="soft", segment_fractions=(0.3, 0.6),
-    segment_step=2,
-)  # fmt: skip
 
 
 def _pg_bin(name: str) -> str:
@@ -71,39 +64,22 @@ def postgres_url():
 
 
 @pytest.fixture(scope="module")
-def start_model(sim_sequence, tmp_path_factory):
-    model = fit_initial_model(sim_sequence, ["00"], get_backbone("geometric"), every=10,
-                              init="gicp")  # fmt: skip
-    path = tmp_path_factory.mktemp("start") / "start.npz"
-    save_model(path, model)
-    return path
-
-
-@pytest.fixture(scope="module")
 def cache(tmp_path_factory):
     """Prepared windows shared by this module's runs (their preprocessing is the same)."""
     return tmp_path_factory.mktemp("cache")
 
 
-def _config(sim_sequence, start_model, **tpe) -> TrainConfig:
-    return TrainConfig(
-        mode="tpe",
-        data=str(sim_sequence),
-        sequences=("00",),
-        frames=6,
-        init_model=str(start_model),
-        batch=dataclasses.replace(TINY, gicp=dataclasses.replace(TINY.gicp, adjoint="implicit")),
-        tpe=TPEConfig(**{"n_trials": 4, **tpe}),
-    )
+def _config(tiny_training, **tpe) -> TrainConfig:
+    return tiny_training.config(mode="tpe", tpe=TPEConfig(**{"n_trials": 4, **tpe}))
 
 
 def _trials(url: str, name: str) -> list[optuna.trial.FrozenTrial]:
     return optuna.load_study(study_name=name, storage=url).get_trials(deepcopy=False)
 
 
-def test_postgres_two_workers_share_one_study(sim_sequence, start_model, cache, tmp_path,
+def test_postgres_two_workers_share_one_study(tiny_training, cache, tmp_path,
                                               postgres_url):  # fmt: skip
-    cfg = _config(sim_sequence, start_model, n_trials=6, storage=postgres_url, study_name="two")
+    cfg = _config(tiny_training, n_trials=6, storage=postgres_url, study_name="two")
     problem = setup(cfg, tmp_path / "run", cache_dir=cache)
     # The command runs trials itself from the start; on a busy machine it could finish all
     # six before the worker process it started has imported JAX. Its trials wait until that
@@ -134,11 +110,11 @@ def test_postgres_two_workers_share_one_study(sim_sequence, start_model, cache, 
     assert load_model(tmp_path / "run" / "model.npz").provenance["study"] == "two"
 
 
-def test_postgres_killed_worker_trial_fails_and_is_retried(sim_sequence, start_model, cache,
+def test_postgres_killed_worker_trial_fails_and_is_retried(tiny_training, cache,
                                                            tmp_path, postgres_url):  # fmt: skip
     """A worker on 'another machine' (a process of its own) is SIGKILLed mid-trial; after the
     grace period the next worker fails that trial and runs its weights again."""
-    cfg = _config(sim_sequence, start_model, n_trials=3, storage=postgres_url,
+    cfg = _config(tiny_training, n_trials=3, storage=postgres_url,
                   study_name="killed", heartbeat_interval=1, grace_period=3)  # fmt: skip
     run = tmp_path / "run"
     setup(cfg, run, cache_dir=cache)  # prepares the folder; the lone worker loads it
@@ -177,9 +153,9 @@ def _safe_trials(url, name):
         return []
 
 
-def _cli_config(sim_sequence, start_model, tmp_path, **tpe) -> Path:
+def _cli_config(tiny_training, tmp_path, **tpe) -> Path:
     path = tmp_path / "train.yaml"
-    dump_config(_config(sim_sequence, start_model, **tpe), path)
+    dump_config(_config(tiny_training, **tpe), path)
     return path
 
 
@@ -192,14 +168,14 @@ def _cli_config(sim_sequence, start_model, tmp_path, **tpe) -> Path:
         ("truncated", "cannot use this database ("),  # not a database, or malformed
     ],
 )
-def test_cli_bad_storage_is_one_line_before_any_data(sim_sequence, start_model, tmp_path,
+def test_cli_bad_storage_is_one_line_before_any_data(tiny_training, tmp_path,
                                                      storage, message):  # fmt: skip
     if storage == "truncated":  # a study.db cut short (the first bytes of a real one)
         db = tmp_path / "old.db"
         optuna.create_study(storage=f"sqlite:///{db}", study_name="x")
         (tmp_path / "study.db").write_bytes(db.read_bytes()[:100])
         storage = f"sqlite:///{tmp_path / 'study.db'}"
-    config = _cli_config(sim_sequence, start_model, tmp_path)
+    config = _cli_config(tiny_training, tmp_path)
     out = tmp_path / "run"
     result = CliRunner().invoke(
         app, ["train", "--config", str(config), "--out", str(out), "--storage", storage]
@@ -209,9 +185,9 @@ def test_cli_bad_storage_is_one_line_before_any_data(sim_sequence, start_model, 
     assert not (out / "cache").exists() and not (out / "config.yaml").exists()
 
 
-def test_cli_counts_raised_on_resume_and_a_study_of_other_settings(sim_sequence, start_model,
-                                                                   cache, tmp_path):  # fmt: skip
-    config = _cli_config(sim_sequence, start_model, tmp_path, n_trials=2)
+def test_cli_counts_raised_on_resume_and_a_study_of_other_settings(tiny_training, cache,
+                                                                   tmp_path):  # fmt: skip
+    config = _cli_config(tiny_training, tmp_path, n_trials=2)
     args = ["train", "--config", str(config), "--cache", str(cache)]
     runner = CliRunner()
     result = runner.invoke(app, [*args, "--out", str(tmp_path / "a")])
@@ -230,18 +206,18 @@ def test_cli_counts_raised_on_resume_and_a_study_of_other_settings(sim_sequence,
     assert not (tmp_path / "b" / "config.yaml").exists()
 
 
-def test_a_failed_setup_does_not_bind_its_folder(sim_sequence, start_model, cache, tmp_path):
-    bad = dataclasses.replace(_config(sim_sequence, start_model), init_model=str(tmp_path / "x"))
+def test_a_failed_setup_does_not_bind_its_folder(tiny_training, cache, tmp_path):
+    bad = dataclasses.replace(_config(tiny_training), init_model=str(tmp_path / "x"))
     with pytest.raises(InputError):
         setup(bad, tmp_path / "run", cache_dir=cache)
     assert not (tmp_path / "run" / "config.yaml").exists()
-    good = dataclasses.replace(_config(sim_sequence, start_model), seed=4)
+    good = dataclasses.replace(_config(tiny_training), seed=4)
     setup(good, tmp_path / "run", cache_dir=cache)  # other settings: accepted
     assert "seed: 4" in (tmp_path / "run" / "config.yaml").read_text()
 
 
-def test_sigterm_fails_the_running_trial_and_exits_143(sim_sequence, start_model, cache, tmp_path):
-    config = _cli_config(sim_sequence, start_model, tmp_path, n_trials=50)
+def test_sigterm_fails_the_running_trial_and_exits_143(tiny_training, cache, tmp_path):
+    config = _cli_config(tiny_training, tmp_path, n_trials=50)
     run = tmp_path / "run"
     command = [sys.executable, "-m", "gloam_jax", "train", "--config", str(config), "--out",
                str(run), "--cache", str(cache)]  # fmt: skip

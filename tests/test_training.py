@@ -13,39 +13,28 @@ from typer.testing import CliRunner
 from gloam_jax.cli import app
 from gloam_jax.cli.common import cache_dir
 from gloam_jax.config import dump_config
-from gloam_jax.features import get_backbone
 from gloam_jax.learned import Learned
 from gloam_jax.models import load_model
 from gloam_jax.preprocess import PreprocessConfig
 from gloam_jax.training import batch
-from gloam_jax.training.config import GradConfig, TPEConfig, TrainConfig
+from gloam_jax.training.config import GradConfig, TPEConfig
 from gloam_jax.training.data import load_windows
 from gloam_jax.training.grad import train_grad
-from gloam_jax.training.problem import fit_initial_model, setup
+from gloam_jax.training.problem import setup
 from gloam_jax.training.tpe import train_tpe
-
-TINY = batch.BatchConfig(
-    rounds=2, max_source_points=200, association="soft", segment_fractions=(0.3, 0.6),
-    segment_step=2,
-)  # fmt: skip
-
-
-@pytest.fixture(scope="module")
-def model(sim_sequence):
-    return fit_initial_model(sim_sequence, ["00"], get_backbone("geometric"), every=10,
-                             init="gicp")  # fmt: skip
 
 
 @pytest.mark.parametrize("adjoint", ["unrolled", "implicit"])
-def test_gradient_matches_finite_differences(sim_sequence, model, adjoint):
+def test_gradient_matches_finite_differences(sim_sequence, tiny_training, adjoint):
     """d(loss)/d(weights) of the trajectory error through the LM solves, float64, along
     random directions in weight space, against central differences."""
     jax.config.update("jax_enable_x64", True)
+    model, tiny = tiny_training.model, tiny_training.batch
     try:
         # Implicit differentiation assumes converged solves: give LM enough steps.
         inner = 3 if adjoint == "unrolled" else 12
-        gicp = dataclasses.replace(TINY.gicp, adjoint=adjoint, inner_steps=inner)
-        config = dataclasses.replace(TINY, gicp=gicp, temperature=0.2)
+        gicp = dataclasses.replace(tiny.gicp, adjoint=adjoint, inner_steps=inner)
+        config = dataclasses.replace(tiny, gicp=gicp, temperature=0.2)
         data = load_windows(sim_sequence, ["00"], PreprocessConfig(), config, model.pca,
                             model.backbone(), frames=5)  # fmt: skip
         f64 = lambda tree: jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), tree)  # noqa: E731
@@ -59,36 +48,23 @@ def test_gradient_matches_finite_differences(sim_sequence, model, adjoint):
         def loss(p):
             return batch.loss(Learned(*p, model.eps), data, config)
 
-        value, grad = jax.jit(jax.value_and_grad(loss))(params)
+        flat_p, unravel = jax.flatten_util.ravel_pytree(params)
+        # One program for the gradient and the differences' values: one compilation.
+        value_and_grad = jax.jit(jax.value_and_grad(lambda x: loss(unravel(x))))
+        value, flat_g = value_and_grad(flat_p)
         assert np.isfinite(float(value)) and float(value) > 0
-        flat_g, unravel = jax.flatten_util.ravel_pytree(grad)
-        flat_p, _ = jax.flatten_util.ravel_pytree(params)
         assert np.all(np.isfinite(flat_g)) and np.linalg.norm(flat_g) > 0
-        fl = jax.jit(lambda x: loss(unravel(x)))
+        fl = lambda x: float(value_and_grad(x)[0])  # noqa: E731
         rng = np.random.default_rng(0)
         h = 1e-5
         for _ in range(3):
             v = rng.normal(size=flat_p.shape)
             v /= np.linalg.norm(v)
-            fd = (float(fl(flat_p + h * v)) - float(fl(flat_p - h * v))) / (2 * h)
+            fd = (fl(flat_p + h * v) - fl(flat_p - h * v)) / (2 * h)
             ad = float(flat_g @ v)
             assert ad == pytest.approx(fd, rel=2e-3, abs=1e-7), (adjoint, ad, fd)
     finally:
         jax.config.update("jax_enable_x64", False)
-
-
-def _config(sim_sequence, tmp_path, model, **kw) -> TrainConfig:
-    from gloam_jax.models import save_model
-
-    save_model(tmp_path / "start.npz", model)
-    return TrainConfig(
-        data=str(sim_sequence),
-        sequences=("00",),
-        frames=6,
-        init_model=str(tmp_path / "start.npz"),
-        batch=dataclasses.replace(TINY, gicp=dataclasses.replace(TINY.gicp, adjoint="implicit")),
-        **kw,
-    )
 
 
 class Interrupt(Exception):
@@ -103,8 +79,8 @@ def _interrupt_after(n):
     return progress
 
 
-def test_tpe_runs_resumes_and_exports(sim_sequence, tmp_path, model):
-    cfg = _config(sim_sequence, tmp_path, model, mode="tpe", tpe=TPEConfig(n_trials=3))
+def test_tpe_runs_resumes_and_exports(tiny_training, tmp_path):
+    cfg = tiny_training.config(mode="tpe", tpe=TPEConfig(n_trials=3))
     run = tmp_path / "tpe"
     cache = tmp_path / "cache"
     with pytest.raises(Interrupt):
@@ -128,11 +104,11 @@ def test_tpe_runs_resumes_and_exports(sim_sequence, tmp_path, model):
     assert trained.provenance["trials"] == 3 and (run / "loss_curve.png").stat().st_size > 0
 
 
-def test_grad_runs_and_resumes_to_the_same_weights(sim_sequence, tmp_path, model):
+def test_grad_runs_and_resumes_to_the_same_weights(tiny_training, tmp_path):
     """With a random subset of source points per step: a resumed run repeats them. (Resuming
-    without subsets: the Ctrl-C test of test_batch.py.)"""
+    inside a step: the Ctrl-C test of test_batch.py, with the same training step.)"""
     grad = GradConfig(steps=2, eval_every=1, learning_rate=0.01, source_points=64)
-    cfg = _config(sim_sequence, tmp_path, model, mode="grad", grad=grad)
+    cfg = tiny_training.config(mode="grad", grad=grad)
     cache = tmp_path / "cache"
     straight = train_grad(setup(cfg, tmp_path / "a", cache_dir=cache))
     with pytest.raises(Interrupt):
@@ -171,17 +147,19 @@ def test_the_command_line_sets_equinox_errors_to_nan_unless_told_otherwise():
         assert out.stdout.strip() == expected
 
 
-def test_cli_train_and_a_changed_config(sim_sequence, tmp_path, model):
-    cfg = _config(sim_sequence, tmp_path, model, mode="grad", grad=GradConfig(steps=1))
+def test_cli_train_and_a_changed_config(tiny_training, tmp_path):
+    # A training step that no other test builds: a new entry in the compilation cache.
+    cfg = tiny_training.config(mode="grad", grad=GradConfig(steps=1))
     dump_config(cfg, tmp_path / "train.yaml")
     runner = CliRunner()
     args = ["train", "--config", str(tmp_path / "train.yaml"), "--out", str(tmp_path / "run")]
+    steps_before = set((cache_dir() / "jax").glob("jit_update-*"))
     result = runner.invoke(app, args)
     assert result.exit_code == 0, result.output
     assert (tmp_path / "run" / "model.npz").is_file()
-    # The compiled training step is in the compilation cache: a rerun loads it (no host
+    # The compiled training step went into the compilation cache: a rerun loads it (no host
     # callback in it: EQX_ON_ERROR=nan, as the command line sets it).
-    assert list((cache_dir() / "jax").glob("jit_update-*"))
+    assert set((cache_dir() / "jax").glob("jit_update-*")) - steps_before
     result = runner.invoke(app, [*args, "--mode", "tpe"])
     assert result.exit_code == 2
     assert "other settings (mode)" in result.output
