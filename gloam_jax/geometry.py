@@ -10,6 +10,9 @@ Conventions (owned here, used everywhere else):
   ``so3_exp(phi)`` and translation ``V(phi) @ rho``.
 * Every function broadcasts over leading batch axes. Values and gradients are finite at
   angle 0 (Taylor branches) and at angle pi (the logarithm goes through a quaternion).
+
+The exponentials, logarithms and quaternion maps are jitted: called on concrete arrays (the
+simulator, set-up code) they compile one program per shape, not each of their primitives.
 """
 
 from __future__ import annotations
@@ -132,6 +135,7 @@ def _angle_coefficients(phi: Array) -> tuple[Array, Array, Array, Array]:
     return theta_sq, a, b, c
 
 
+@jax.jit
 def so3_exp(phi: ArrayLike) -> Array:
     """Rotation matrix of the rotation vector ``phi``: (..., 3) -> (..., 3, 3)."""
     phi = jnp.asarray(phi)
@@ -141,6 +145,7 @@ def so3_exp(phi: ArrayLike) -> Array:
     return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
 
 
+@jax.jit
 def quat_from_rotation(R: ArrayLike) -> Array:
     """Unit quaternion ``(qx, qy, qz, qw)`` with ``qw >= 0`` of a rotation matrix (Shepperd)."""
     R = jnp.asarray(R)
@@ -176,6 +181,7 @@ def quat_from_rotation(R: ArrayLike) -> Array:
     return jnp.where(q[..., 3:4] < 0.0, -q, q)
 
 
+@jax.jit
 def rotation_from_quat(q: ArrayLike) -> Array:
     """Rotation matrix of a quaternion ``(qx, qy, qz, qw)`` (normalised first)."""
     q = jnp.asarray(q)
@@ -191,6 +197,7 @@ def rotation_from_quat(q: ArrayLike) -> Array:
     )
 
 
+@jax.jit
 def so3_log(R: ArrayLike) -> Array:
     """Rotation vector of a rotation matrix, angle in [0, pi]: (..., 3, 3) -> (..., 3)."""
     q = quat_from_rotation(R)
@@ -240,6 +247,7 @@ def make_transform(R: ArrayLike, t: ArrayLike) -> Array:
     return T.at[..., 3, 3].set(1.0)
 
 
+@jax.jit
 def se3_exp(xi: ArrayLike) -> Array:
     """Transform of the tangent vector ``xi = (rho, phi)``: (..., 6) -> (..., 4, 4)."""
     xi = jnp.asarray(xi)
@@ -249,6 +257,7 @@ def se3_exp(xi: ArrayLike) -> Array:
     return make_transform(R, t)
 
 
+@jax.jit
 def se3_log(T: ArrayLike) -> Array:
     """Tangent vector ``(rho, phi)`` of a transform: (..., 4, 4) -> (..., 6)."""
     T = jnp.asarray(T)
@@ -276,6 +285,7 @@ def se3_apply(T_a_b: ArrayLike, p_b: ArrayLike) -> Array:
     return (R @ p_b[..., None])[..., 0] + T_a_b[..., None, :3, 3]
 
 
+@jax.jit
 def se3_interpolate(T_w_a: ArrayLike, T_w_b: ArrayLike, alpha: ArrayLike) -> Array:
     """Geodesic ``T_w_a @ exp(alpha * log(T_a_b))``; alpha = 0 gives a, 1 gives b (extrapolates)."""
     alpha = jnp.asarray(alpha)
@@ -283,6 +293,7 @@ def se3_interpolate(T_w_a: ArrayLike, T_w_b: ArrayLike, alpha: ArrayLike) -> Arr
     return se3_compose(T_w_a, se3_exp(alpha[..., None] * xi))
 
 
+@jax.jit
 def rotation_angle(R: ArrayLike) -> Array:
     """Rotation angle in radians, in [0, pi], NaN-free: (..., 3, 3) -> (...)."""
     phi = so3_log(R)
