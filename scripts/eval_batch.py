@@ -2,11 +2,15 @@
 
     python scripts/eval_batch.py --config configs/train_tpe.yaml --sequences 00,02,04 \\
         --model tpe=runs/tpe/model.npz --model grad=runs/grad/model.npz --out batch_eval.json
+    python scripts/eval_batch.py --config configs/train_protocol.yaml --sequences 201,202 \\
+        --data data/protocol2 --data data/val_worlds_s1 --model grad=runs/g0/model.npz
 
 Prepares the windows as the config's training does (same preprocessing, candidate sets and
 registrations, with the PCA of the first model) and prints each model's t_err (%) per window,
-with hard association, next to plain GICP's. Tells whether what training learned carries over
-to windows it did not see, before any odometry is involved.
+with hard association, next to plain GICP's; the windows are the sequences of the config's
+training roots, or of the ``--data`` roots (validation worlds, simulation seeds). Tells
+whether what training learned carries over to windows it did not see, before any odometry is
+involved.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ def main() -> None:
     parser.add_argument("--config", type=Path, default=Path("configs/train_tpe.yaml"))
     parser.add_argument("--sequences", required=True, help="comma-separated ids")
     parser.add_argument("--model", action="append", required=True, help="LABEL=FILE")
+    parser.add_argument("--data", action="append", help="root (repeatable; default: the config's)")
     parser.add_argument("--method", default="gloam")
     parser.add_argument("--cache", type=Path, default=Path("runs/cache"))
     parser.add_argument("--out", type=Path)
@@ -44,9 +49,11 @@ def main() -> None:
     for label, model in loaded.items():
         if not all(np.array_equal(a, b) for a, b in zip(model.pca, first.pca, strict=True)):
             raise SystemExit(f"{label}: its PCA differs from the first model's")
-    sequences = args.sequences.split(",")
-    data = load_windows(cfg.data, sequences, cfg.preprocess, config, first.pca, first.backbone(),
+    names = args.sequences.split(",")
+    roots = args.data or list(cfg.training_roots)
+    data = load_windows(roots, names, cfg.preprocess, config, first.pca, first.backbone(),
                         frames=cfg.frames, cache_dir=args.cache)  # fmt: skip
+    sequences = names if len(roots) == 1 else [f"{Path(r).name}/{n}" for r in roots for n in names]
     evaluate = Evaluator(data, config)
     rows = {"GICP": evaluate(Learned())}
     rows |= {label: evaluate(learned_parts(m, args.method)) for label, m in loaded.items()}
