@@ -107,11 +107,11 @@ class TrainConfig:
             raise InputError(None, f"worse_penalty must be >= 0, not {self.worse_penalty}")
         if not 0 <= self.min_gain < 1:
             raise InputError(None, f"min_gain must be in [0, 1), not {self.min_gain}")
-        for name in ("data", "validation_data"):
-            roots = getattr(self, name)
-            if name == "validation_data" and roots is None:
-                continue
-            object.__setattr__(self, name, as_roots(roots, name))
+        object.__setattr__(self, "data", as_roots(self.data, "data"))
+        if self.validation_data is not None:
+            object.__setattr__(
+                self, "validation_data", as_roots(self.validation_data, "validation_data")
+            )
         same_root = set(self.training_roots) & set(self.validation_roots)
         shared = sorted(set(self.validation) & set(self.sequences)) if same_root else []
         if shared:
@@ -127,13 +127,10 @@ class TrainConfig:
     @property
     def validation_roots(self) -> tuple[str, ...]:
         """The roots that hold the validation sequences: validation_data, or data's."""
-        if self.validation_data is None:
+        roots = self.validation_data
+        if roots is None:
             return self.training_roots
-        return (
-            (self.validation_data,)
-            if isinstance(self.validation_data, str)
-            else self.validation_data
-        )
+        return (roots,) if isinstance(roots, str) else roots
 
 
 def as_roots(value: object, name: str) -> str | tuple[str, ...]:
