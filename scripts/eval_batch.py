@@ -20,22 +20,36 @@ import dataclasses
 import json
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from gloam_jax.config import load_config
 from gloam_jax.io import write_atomic
 from gloam_jax.learned import Learned
-from gloam_jax.models import learned_parts, load_model
+from gloam_jax.models import GLOAMModel, learned_parts, load_model, with_mlps
 from gloam_jax.training.batch import Evaluator
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.data import load_windows
+from gloam_jax.training.grad import CHECKPOINT, load_checkpoint
+
+
+def _load(path: Path, method: str) -> GLOAMModel:
+    """A model file, or a gradient run's ``checkpoint.npz``: the weights of its last step,
+    which the run itself exports only when validation chose that step."""
+    if path.name != CHECKPOINT:
+        return load_model(path)
+    start = load_model(path.parent / "init_model.npz")
+    params = start.learned.for_method(method)._replace(eps=jnp.asarray(start.eps, jnp.float32))
+    last = load_checkpoint(path, {"params": params})[0]["params"]
+    return with_mlps(start, last.conversion, last.eigenvalue, {"checkpoint": str(path)})
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--config", type=Path, default=Path("configs/train_tpe.yaml"))
     parser.add_argument("--sequences", required=True, help="comma-separated ids")
-    parser.add_argument("--model", action="append", required=True, help="LABEL=FILE")
+    parser.add_argument("--model", action="append", required=True,
+                        help="LABEL=FILE, a model file or a run's checkpoint.npz")  # fmt: skip
     parser.add_argument("--data", action="append", help="root (repeatable; default: the config's)")
     parser.add_argument("--method", default="gloam")
     parser.add_argument("--cache", type=Path, default=Path("runs/cache"))
@@ -44,7 +58,7 @@ def main() -> None:
     cfg = load_config(args.config, TrainConfig)
     config = dataclasses.replace(cfg.batch, association="hard")
     models = dict(m.split("=", 1) for m in args.model)
-    loaded = {label: load_model(path) for label, path in models.items()}
+    loaded = {label: _load(Path(path), args.method) for label, path in models.items()}
     first = next(iter(loaded.values()))
     for label, model in loaded.items():
         if not all(np.array_equal(a, b) for a, b in zip(model.pca, first.pca, strict=True)):
