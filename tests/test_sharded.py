@@ -22,14 +22,14 @@ DEVICES = 4
 
 
 @pytest.fixture(scope="module")
-def worker(sim_sequence, tmp_path_factory) -> tuple[dict, Path]:
+def worker(sim_sequence, tiny_training, tmp_path_factory) -> tuple[dict, Path]:
     """The worker's results for both checks: its metadata, and the folder of its arrays."""
     out = tmp_path_factory.mktemp("sharded")
     env = dict(os.environ)
     flag = f"--xla_force_host_platform_device_count={DEVICES}"
     env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {flag}".strip()
     env["JAX_PLATFORMS"] = "cpu"
-    cmd = [sys.executable, __file__, str(sim_sequence), str(out)]
+    cmd = [sys.executable, __file__, str(sim_sequence), str(out), str(tiny_training.start)]
     done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
     return json.loads((out / "meta.json").read_text()), out
@@ -138,21 +138,18 @@ def _evaluate(root: Path, out: Path) -> dict:
     return meta
 
 
-def _grad(root: Path, out: Path) -> dict:
+def _grad(root: Path, out: Path, start: Path) -> dict:
+    """From ``start``, the GICP start model of conftest's tiny_training."""
     import jax
     from jax.flatten_util import ravel_pytree
 
-    from gloam_jax.features import get_backbone
-    from gloam_jax.models import save_model
     from gloam_jax.training import batch
     from gloam_jax.training.config import GradConfig, TrainConfig
     from gloam_jax.training.grad import CHECKPOINT, _optimizer, load_checkpoint, train_grad
-    from gloam_jax.training.problem import fit_initial_model, setup
+    from gloam_jax.training.problem import setup
 
-    model = fit_initial_model(root, ["00"], get_backbone("geometric"), every=10, init="gicp")
-    save_model(out / "start.npz", model)
     cfg = TrainConfig(
-        data=str(root), sequences=("00",), frames=6, init_model=str(out / "start.npz"),
+        data=str(root), sequences=("00",), frames=6, init_model=str(start),
         batch=_grad_config(), grad=GradConfig(steps=1, eval_every=1, learning_rate=0.01),
     )  # fmt: skip
     problem = setup(cfg, out / "run", cache_dir=out / "cache")
@@ -192,6 +189,6 @@ if __name__ == "__main__":
     # The session's cache (XDG_CACHE_HOME from conftest): what is compiled twice here (to count
     # its flops) compiles once.
     use_compilation_cache(True)
-    root, out = Path(sys.argv[1]), Path(sys.argv[2])
-    meta = {"evaluate": _evaluate(root, out), "grad": _grad(root, out)}
+    root, out, start = (Path(a) for a in sys.argv[1:4])
+    meta = {"evaluate": _evaluate(root, out), "grad": _grad(root, out, start)}
     (out / "meta.json").write_text(json.dumps(meta))
