@@ -258,6 +258,15 @@ def _load_pairs(path: Path) -> PreparedPairs:
         return PreparedPairs(**per_pair, T_init=z["T_init"])
 
 
+def open_sequences(
+    root: str | Path | Sequence[str | Path], names: Sequence[str]
+) -> list[io.KittiSequence]:
+    """The sequences ``names`` of ``root``, or of each of several roots in turn (a one-line
+    error for any that is missing)."""
+    roots = [root] if isinstance(root, str | Path) else root
+    return [io.KittiSequence(r, name) for r in roots for name in names]
+
+
 def load_windows(
     root: str | Path | Sequence[str | Path],
     sequences: Sequence[str],
@@ -275,9 +284,8 @@ def load_windows(
     With ``cache_dir``, prepared scans and pairs are saved there (atomically, apart) and
     reused by later runs with the same settings and PCA."""
     windows = []
-    roots = [root] if isinstance(root, str | Path) else root
-    for seq_root, name in [(r, n) for r in roots for n in sequences]:
-        seq = io.KittiSequence(seq_root, name)
+    for seq in open_sequences(root, sequences):
+        name = seq.sequence
         window = range(0, len(seq) if frames is None else min(frames, len(seq)))
         scan_path = pair_path = None
         if cache_dir is not None:

@@ -31,7 +31,7 @@ from gloam_jax.learned import Learned
 from gloam_jax.models import GLOAMModel, init_model, load_model, save_model, with_mlps
 from gloam_jax.training.batch import BatchData, Evaluator
 from gloam_jax.training.config import TrainConfig
-from gloam_jax.training.data import load_windows
+from gloam_jax.training.data import load_windows, open_sequences
 from gloam_jax.training.objective import Score, score
 
 Progress = Callable[[str, int, int], None]  # (what, done, total)
@@ -52,9 +52,8 @@ def fit_initial_model(
     of each of several roots) and wrap it with initialised MLPs
     (:func:`gloam_jax.models.init_model`)."""
     rows = []
-    roots = [root] if isinstance(root, str | Path) else root
-    for seq_root, name in [(r, n) for r in roots for n in sequences]:
-        seq = io.KittiSequence(seq_root, name)
+    for seq in open_sequences(root, sequences):
+        name = seq.sequence
         frames = range(0, len(seq), every)
         for k, i in enumerate(frames):
             rows.append(extractor(seq.scan(i), path=seq.scan_path(i), frame=i))
@@ -205,13 +204,9 @@ def setup(
     run_dir = Path(run_dir)
     resumed = _check_run_dir(config, run_dir)
     # Every sequence is found before the preparation (minutes to hours), not after it.
-    val_roots = config.validation_roots if validation and config.validation else ()
-    for root, names in [
-        *((r, config.sequences) for r in config.training_roots),
-        *((r, config.validation) for r in val_roots),
-    ]:
-        for name in names:
-            io.KittiSequence(root, name)
+    open_sequences(config.training_roots, config.sequences)
+    if validation and config.validation:
+        open_sequences(config.validation_roots, config.validation)
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
