@@ -20,7 +20,6 @@ import dataclasses
 import json
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 
 from gloam_jax.config import load_config
@@ -31,6 +30,7 @@ from gloam_jax.training.batch import Evaluator
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.data import load_windows
 from gloam_jax.training.grad import CHECKPOINT, load_checkpoint
+from gloam_jax.training.problem import trainable_params
 
 
 def _load(path: Path, method: str) -> GLOAMModel:
@@ -39,8 +39,7 @@ def _load(path: Path, method: str) -> GLOAMModel:
     if path.name != CHECKPOINT:
         return load_model(path)
     start = load_model(path.parent / "init_model.npz")
-    params = start.learned.for_method(method)._replace(eps=jnp.asarray(start.eps, jnp.float32))
-    last = load_checkpoint(path, {"params": params})[0]["params"]
+    last = load_checkpoint(path, {"params": trainable_params(start, method)})[0]["params"]
     return with_mlps(start, last.conversion, last.eigenvalue, {"checkpoint": str(path)})
 
 

@@ -68,6 +68,13 @@ def fit_initial_model(
     )
 
 
+def trainable_params(model: GLOAMModel, method: str) -> Learned:
+    """``model``'s parameters as training holds them (and checkpoints them): the MLPs
+    ``method`` uses (the other None) and eps as a fixed array leaf (its gradient is stopped)."""
+    start = model.learned.for_method(method)
+    return start._replace(eps=jnp.asarray(model.eps, jnp.float32))
+
+
 @dataclasses.dataclass
 class Validation:
     """The validation windows' hard-association evaluators, one per root of
@@ -92,10 +99,8 @@ class Problem:
 
     @property
     def init_params(self) -> Learned:
-        """The trainable parameters at the start: the MLPs the method uses (the other None)
-        and eps as a fixed array leaf (its gradient is stopped)."""
-        start = self.model.learned.for_method(self.config.method)
-        return start._replace(eps=jnp.asarray(self.model.eps, jnp.float32))
+        """The trainable parameters at the start (:func:`trainable_params`)."""
+        return trainable_params(self.model, self.config.method)
 
     def training_loss(self, params: Learned) -> Score:
         """The objective, mean t_err (fraction) and r_err (rad/m) over the training windows,
