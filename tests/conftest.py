@@ -1,6 +1,7 @@
 """Fixtures shared by several test modules."""
 
 import dataclasses
+import os
 import types
 
 import pytest
@@ -17,7 +18,14 @@ def session_cache(tmp_path_factory):
     """The user cache (scan cache, JAX compilation cache) in a folder of this session, not
     ~/.cache: tests neither read what earlier runs left nor leave anything."""
     with pytest.MonkeyPatch.context() as patch:
-        patch.setenv("XDG_CACHE_HOME", str(tmp_path_factory.mktemp("user_cache")))
+        # Under pytest-xdist, one cache for all workers (beside their own folders): a program
+        # one worker compiled, the other loads.
+        base = tmp_path_factory.getbasetemp()
+        if os.environ.get("PYTEST_XDIST_WORKER"):
+            base = base.parent
+        cache = base / "user_cache"
+        cache.mkdir(exist_ok=True)
+        patch.setenv("XDG_CACHE_HOME", str(cache))
         # On from the start, as in every gloam command: tests that build the same program
         # (the same training step, the same batch evaluation) compile it once.
         use_compilation_cache(True)

@@ -13,6 +13,10 @@ from gloam_jax.preprocess import PreprocessConfig
 from gloam_jax.training import batch
 from gloam_jax.training.data import load_windows, prepare_scans
 
+# One worker runs this module (pytest-xdist --dist loadgroup): its module fixture is built once.
+pytestmark = pytest.mark.xdist_group("batch")
+
+
 PREPROCESS = PreprocessConfig(downsampling_resolution=0.5)
 CONFIG = batch.BatchConfig(rounds=3, max_source_points=400, segment_fractions=(0.3, 0.6))
 

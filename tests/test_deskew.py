@@ -22,6 +22,10 @@ from gloam_jax.preprocess import (
 )
 from gloam_jax.simulate import ErrorSwitches, simulate
 
+# One worker runs this module (pytest-xdist --dist loadgroup): its module fixture is built once.
+pytestmark = pytest.mark.xdist_group("deskew")
+
+
 MID = np.linspace(-0.05, 0.05, 2001)  # seconds from mid-sweep, one 0.1 s sweep
 
 # The conventions drivers write, each as a function of seconds from mid-sweep.

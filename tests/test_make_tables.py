@@ -11,6 +11,10 @@ import pytest
 from gloam_jax.models import load_model, shipped_model_path
 from gloam_jax.simulate import simulate
 
+# One worker runs this module (pytest-xdist --dist loadgroup): its module fixture is built once.
+pytestmark = pytest.mark.xdist_group("make_tables")
+
+
 ROOT = Path(__file__).resolve().parents[1]
 spec = importlib.util.spec_from_file_location("make_tables", ROOT / "scripts/make_tables.py")
 make_tables = importlib.util.module_from_spec(spec)
