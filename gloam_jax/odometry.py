@@ -121,6 +121,11 @@ class LocalMap:
         self._pending = self._worker.submit(_merge, list(self.keyframes), self.size)
         self.last_pose = T_world_lidar
 
+    def clear(self) -> None:
+        """No keyframes (a merge still running is left to finish unread)."""
+        self.keyframes, self.last_pose, self.size = [], None, 0
+        self._merged = self._pending = None
+
     @property
     def cloud(self) -> PreparedCloud | None:
         """The merged map (waits for its merge), or None before the first keyframe."""
@@ -189,6 +194,8 @@ class Odometry:
         self.previous: PreparedCloud | None = None
         self.buckets = pc.StickyBuckets()
         self.map = LocalMap(config.max_keyframes, self.buckets)
+        # The first two frames' inputs, kept until the first velocity redoes them (_redo_start).
+        self._start: list[tuple] = []
 
     def _predict(self) -> np.ndarray:
         if not self.poses:
@@ -203,12 +210,15 @@ class Odometry:
         status,
         source: str | None,
         features: np.ndarray | None,
+        velocity: np.ndarray | None,
     ) -> tuple[np.ndarray, np.ndarray | None]:
+        if velocity is None and self.poses:
+            velocity = self.velocity
         points, pca, status.num_dropped, status.num_thinned = preprocess_scan(
             scan,
             times,
             self.config.preprocess,
-            velocity=self.velocity if self.poses else None,
+            velocity=velocity,
             frame_dt=frame_dt,
             pca=self.model.pca if self.needs_features else None,
             features=features,
@@ -232,9 +242,33 @@ class Odometry:
         # A frame's NumPy products are thin ((N, 3) @ (3, 3), (N, D) @ (D, 6)): threaded BLAS
         # only fights XLA's and the k-d tree's threads for the cores.
         with self._threads.limit(limits=1, user_api="blas"):
-            return self._register(scan, times, frame_dt, source, features)
+            inputs = (scan, times, frame_dt, source, features)
+            if len(self.poses) < 2 and self.config.preprocess.deskew != "off":
+                self._start.append(inputs)
+            T = self._register(*inputs)
+            if len(self.poses) == 2 and self._start:
+                T = self._redo_start()
+            return T
 
-    def _register(self, scan, times, frame_dt, source, features) -> np.ndarray:
+    def _redo_start(self) -> np.ndarray:
+        """Frames 0 and 1 again, both deskewed with the motion between them (the first
+        velocity). Before it was known they were not deskewed; left so, they would be the map
+        that the next, deskewed, scans register to, which biases those registrations (a jump
+        of 19 cm at 8.5 m/s on a simulated urban drive, docs/peers.md). Returns frame 1's pose."""
+        start, velocity = self._start, self.velocity
+        self._start = []
+        # As at the first pass but for the deskew: the same motion prior (none) for frame 1.
+        self.poses, self.status, self.previous, self.velocity = [], [], None, np.zeros(6)
+        self.map.clear()
+        for inputs in start:
+            T = self._register(*inputs, velocity=velocity)
+        return T
+
+    def _register(
+        self, scan, times, frame_dt, source, features, velocity: np.ndarray | None = None
+    ) -> np.ndarray:
+        """One frame, deskewed with ``velocity`` (default: the current one; none for the
+        first frame)."""
         cfg, status = self.config, FrameStatus()
         if self.needs_features and features is None:
             raise InputError(source, f"method '{cfg.method}' needs per-point features")
@@ -242,7 +276,9 @@ class Odometry:
             self.buckets.freeze()
         T_pred = self._predict()
         try:
-            points, pca = self._preprocess(scan, times, frame_dt, status, source, features)
+            points, pca = self._preprocess(
+                scan, times, frame_dt, status, source, features, velocity
+            )
             scan_size = self.buckets("scan", len(points))
             prep = cfg.preprocess
             cloud = build_cloud(

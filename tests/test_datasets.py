@@ -77,9 +77,11 @@ def test_a_folder_of_pcd_scans_runs_like_the_kitti_layout(sim_sequence, tmp_path
     np.testing.assert_allclose(
         io.read_kitti_poses(tmp_path / "pcd_run" / "pcd_poses_kitti.txt"),
         io.read_kitti_poses(tmp_path / "bin_run" / "00_poses_kitti.txt"),
-        atol=1e-4,  # float32 rounding of the times through another file format
+        # Float32 rounding of the times through another file format, which can move the
+        # solver's stop (updates below gicp.translation_eps, 1 mm) by an iteration.
+        atol=1e-3,
     )
-    assert result["ate"]["rmse"] == pytest.approx(reference["ate"]["rmse"], abs=1e-4)
+    assert result["ate"]["rmse"] == pytest.approx(reference["ate"]["rmse"], abs=1e-3)
 
 
 def test_a_bad_scan_is_found_before_the_first_frame(sim_sequence, tmp_path):

@@ -50,6 +50,24 @@ def test_frame_to_model_drift_is_small(sim_sequence):
     assert not any(s.degenerate or s.error for s in odometry.status)
 
 
+def test_the_first_frames_are_redone_with_the_first_velocity(sim_sequence):
+    """Frames 0 and 1 come before any velocity estimate, so at first they are not deskewed;
+    once frame 1 gives one, both are redone with it. Otherwise frame 2, the first deskewed
+    scan, registers to an undeskewed map: on this drive (0.74 m a frame) a 10 cm error in its
+    motion, then 3 cm for two more frames. With it the start is as accurate as later frames."""
+    seq = io.KittiSequence(sim_sequence, "00")
+    for times in (seq.point_times, lambda i: None):  # per-point times, or the azimuth's
+        odometry = Odometry(OdometryConfig())
+        for i in range(6):
+            odometry.register_frame(seq.scan(i), times(i), 0.1)
+        gt, est = seq.gt_poses_lidar[:6], np.stack(odometry.poses)
+        assert len(odometry.status) == 6
+        np.testing.assert_allclose(est[0], np.eye(4), atol=1e-12)
+        motion = np.linalg.inv(gt[:-1]) @ gt[1:]
+        error = np.linalg.inv(motion) @ np.linalg.inv(est[:-1]) @ est[1:]
+        assert np.max(np.linalg.norm(error[:, :3, 3], axis=1)) < 0.015
+
+
 def test_frame_to_frame_mode_runs(sim_sequence):
     seq = io.KittiSequence(sim_sequence, "00")
     odometry = Odometry(OdometryConfig(mode="frame_to_frame"))
