@@ -72,6 +72,9 @@ class FrameStatus:
     num_thinned: int = 0  # points left out to fit the padded size fixed after the warm-up
     iterations: int = 0
     num_inliers: int = 0
+    # GICP's cost per inlier at the solution (mean squared whitened residual): how well the
+    # scan fits its target; comparable between settings on the same scans, not across scans
+    residual: float = float("nan")
     converged: bool = False
     degenerate: bool = False  # some directions were unconstrained and kept the motion prior
     # the scene's weakest constraint over its strongest (registration.conditioning), and the
@@ -300,6 +303,7 @@ class Odometry:
             T_world_target, sizes, prior = np.eye(4), (scan_size, self.map.size), T_pred
         result = align_prepared(target, cloud, prior, cfg.gicp, sizes)
         status.iterations, status.num_inliers = result.iterations, result.num_inliers
+        status.residual = result.error / max(result.num_inliers, 1)
         status.converged = result.converged
         T, weak = result.T_target_source, result.weak_directions
         status.condition = result.condition

@@ -33,8 +33,12 @@ turns downsampling off; `preprocess.min_range: 0` keeps the closest returns.
 
 **Deskew** (`preprocess.deskew`): `auto` uses per-point times when the scans carry them
 (`timestamps/NNNNNN.npy` in the KITTI layout, a `t`/`time`/`timestamp` field in PCD or PLY
-scans), the azimuth for the KITTI layout without them (raw KITTI scans are motion-distorted),
-and nothing otherwise; the run summary and `metrics.json` (`deskew`) say which was used and why.
+scans), the azimuth for the KITTI layout without them (taken as motion-distorted, as the
+simulator writes it), and nothing otherwise; the run summary and `metrics.json` (`deskew`) say
+which was used and why. KITTI odometry's own readme, as quoted in public issue threads, says
+its Velodyne scans were already egomotion-compensated, and 16 real KITTI scans fit the map no
+worse without deskew (`scripts/probe_deskew_fit.py`, [peers.md](peers.md)): for the real
+benchmark's scans `deskew: off` may be right (unmeasured: no ground truth here).
 Per-point times may be seconds from the sweep's start, from mid-sweep or before its end, a
 [0, 1] fraction, or absolute seconds / nanoseconds (also ms, us): like KISS-ICP, they are
 mapped by their span onto one sweep of `preprocess.sweep_duration`, and the convention found
