@@ -84,14 +84,6 @@ class FrameStatus:
     error: str = ""  # bad input that made the frame fall back on the motion prior
 
 
-# deskew: detect. The two hypotheses' fits are compared over this many frames that moved more
-# than DETECT_MOTION (slower ones carry too little distortion to show), from frame 3 on (after
-# the start-up redo); past DETECT_WITHIN frames the decision is taken on what there is.
-DETECT_FRAMES = 10
-DETECT_MOTION = 0.1  # m per frame
-DETECT_WITHIN = 100
-
-
 class LocalMap:
     """The last keyframes, in the world frame, merged into one prepared cloud.
 
@@ -194,16 +186,6 @@ class Odometry:
             # The candidates are there for the learned association to choose among; without
             # it (a fall-back model), GICP's single nearest neighbour, as gicp.yaml has it.
             config = replace(config, gicp=replace(config.gicp, num_candidates=1))
-        # deskew: detect runs a second odometry without deskew beside this one (deskewed by
-        # the times given, else the azimuth), frame for frame, until their fits decide which
-        # of the two goes on (_detect).
-        self.shadow: Odometry | None = None
-        self.deskew_decision: str | None = None
-        self._fits: list[tuple[float, float]] = []  # (deskewed, not) costs of moving frames
-        if config.preprocess.deskew == "detect":
-            prep = config.preprocess
-            self.shadow = Odometry(replace(config, preprocess=replace(prep, deskew="off")), model)
-            config = replace(config, preprocess=replace(prep, deskew="auto"))
         self.config = config
         self.needs_features = self.learned.conversion is not None or (
             self.learned.eigenvalue is not None
@@ -269,41 +251,7 @@ class Odometry:
             T = self._register(*inputs)
             if len(self.poses) == 2 and self._start:
                 T = self._redo_start()
-            if self.shadow is not None:
-                self.shadow.register_frame(*inputs)
-                T = self._detect(T)
             return T
-
-    def _detect(self, T: np.ndarray) -> np.ndarray:
-        """deskew: detect, after each frame: note how well it fit with and without deskew,
-        and decide once enough moving frames are in. Returns the current pose."""
-        mine, theirs = self.status[-1].residual, self.shadow.status[-1].residual
-        moving = np.linalg.norm(self.velocity[:3]) > DETECT_MOTION
-        if len(self.poses) > 3 and moving and np.isfinite(mine) and np.isfinite(theirs):
-            self._fits.append((mine, theirs))
-        if len(self._fits) >= DETECT_FRAMES or len(self.poses) >= DETECT_WITHIN:
-            self.decide_deskew()
-        return self.poses[-1]
-
-    def decide_deskew(self) -> None:
-        """deskew: detect: keep the hypothesis whose scans fit their map better (mean cost per
-        inlier over the moving frames so far; distorted scans fit better deskewed, undistorted
-        ones as they are, docs/peers.md), drop the other and say why in ``deskew_decision``.
-        Called by :meth:`register_frame` once the evidence suffices; a run that ends sooner
-        calls it to decide on what there is. Nothing to do once decided."""
-        if self.shadow is None:
-            return
-        shadow, fits = self.shadow, np.array(self._fits).reshape(-1, 2)
-        deskewed, plain = fits.mean(axis=0) if len(fits) else (np.nan, np.nan)
-        evidence = f"{len(fits)} moving frames, cost per inlier {deskewed:.4f} deskewed"
-        if plain < deskewed:
-            self.__dict__.update(shadow.__dict__)  # its poses, map and settings from here on
-            decision = f"off: the scans fit better as they are ({evidence}, {plain:.4f} not)"
-        elif len(fits):
-            decision = f"deskewed: the scans fit better so ({evidence}, {plain:.4f} not)"
-        else:
-            decision = "deskewed: no frame moved enough to tell"
-        self.shadow, self._fits, self.deskew_decision = None, [], decision
 
     def _redo_start(self) -> np.ndarray:
         """Frames 0 and 1 again, both deskewed with the motion between them (the first

@@ -140,9 +140,6 @@ def run_dataset(
         frame_ms.append(1e3 * (time.perf_counter() - t0))
         if progress is not None:
             progress(k, frame_ms[-1])
-    odometry.decide_deskew()  # deskew: detect, on a run too short to have decided
-    if odometry.deskew_decision is not None:
-        deskew["detected"] = odometry.deskew_decision
     extra = {"deskew": deskew, "defaults": list(dataset.defaults), "dataset": dataset.kind,
              "frames": {"start": frames.start, "stride": frames.step, "count": n}}  # fmt: skip
     if feature_ms:

@@ -8,13 +8,9 @@ time with a constant velocity.
 Deskew policy (``PreprocessConfig.deskew``): ``timestamps`` uses the scan's per-point times,
 ``azimuth`` derives them from each point's azimuth (a spinning sensor, KITTI's HDL-64E),
 ``off`` leaves the scan as it is. ``auto`` is resolved by the data: per-point times when the
-scans have them, ``detect`` for the KITTI layout, off otherwise (:func:`resolve_deskew`);
-given to :func:`preprocess_scan` directly, ``auto`` uses
-the times when given and the azimuth otherwise. ``detect`` (``auto``'s choice for the KITTI
-layout without times) is the odometry's: scans without per-point times are deskewed from the
-azimuth unless the first moving frames fit the map better without it (KITTI's own odometry
-scans are documented as egomotion-compensated; :class:`gloam_jax.odometry.Odometry`); one
-scan alone is treated as ``auto``.
+scans have them, azimuth times for the KITTI layout (its raw scans are motion-distorted), off
+otherwise (:func:`resolve_deskew`); given to :func:`preprocess_scan` directly, ``auto`` uses
+the times when given and the azimuth otherwise.
 
 Per-point times may come in any common convention (seconds from the sweep's start or from
 mid-sweep, a [0, 1] fraction, absolute seconds or nanoseconds): as KISS-ICP does, they are
@@ -42,7 +38,7 @@ if TYPE_CHECKING:
     from gloam_jax.features.pca import FeaturePCA
 
 
-DeskewPolicy = Literal["auto", "timestamps", "azimuth", "off", "detect"]
+DeskewPolicy = Literal["auto", "timestamps", "azimuth", "off"]
 DESKEW_POLICIES: tuple[str, ...] = get_args(DeskewPolicy)
 
 
@@ -63,9 +59,8 @@ class PreprocessConfig:
     # covariances replace it by Algorithm 1
     regularizer: Literal["plane", "raw_eps"] = "plane"
     # undo motion distortion with the current velocity: auto (by the data), timestamps (the
-    # scans' per-point times), azimuth (times from each point's azimuth), off, or detect
-    # (azimuth unless the first moving frames fit better without); true and false from older
-    # files are read as auto and off
+    # scans' per-point times), azimuth (times from each point's azimuth) or off; true and false
+    # from older files are read as auto and off
     deskew: DeskewPolicy | bool = "auto"
     # s, one sweep: per-point times are normalised onto it, and azimuth times span it
     sweep_duration: float = 0.1
@@ -173,31 +168,23 @@ def normalise_times(
 
 
 def resolve_deskew(policy: str, has_times: bool, distorted_layout: bool) -> tuple[str, str]:
-    """The concrete policy (``timestamps``, ``azimuth``, ``off`` or the odometry's ``detect``)
-    for data with or without per-point times, from a layout known to be motion-distorted
-    (KITTI) or not, and why. ``timestamps`` without times is an InputError."""
+    """The concrete policy (``timestamps``, ``azimuth`` or ``off``) for data with or without
+    per-point times, from a layout known to be motion-distorted (KITTI) or not, and why.
+    ``timestamps`` without times is an InputError."""
     if policy == "timestamps" and not has_times:
         raise InputError(
             None,
             "preprocess.deskew is 'timestamps' but the scans have no per-point times "
             "(use auto, azimuth or off)",
         )
-    if policy == "detect":
-        if has_times:
-            return "timestamps", "deskew: detect -> timestamps (the scans carry per-point times)"
-        return "detect", (
-            "deskew: detect (no per-point times: azimuth unless the first moving frames fit "
-            "the map better without deskew)"
-        )
     if policy != "auto":
         return policy, f"deskew: {policy} (as configured)"
     if has_times:
         return "timestamps", "deskew: auto -> timestamps (the scans carry per-point times)"
     if distorted_layout:
-        return "detect", (
-            "deskew: auto -> detect (KITTI layout without per-point times: azimuth deskew, "
-            "unless the first moving frames fit the map better without it, as scans already "
-            "deskewed do)"
+        return "azimuth", (
+            "deskew: auto -> azimuth (KITTI layout without per-point times: raw scans are "
+            "motion-distorted, times taken from each point's azimuth)"
         )
     return "off", (
         "deskew: auto -> off (no per-point times and not the KITTI layout; set "
@@ -268,7 +255,7 @@ def preprocess_scan(
     if len(points) == 0:
         raise InputError(source, f"no points between {config.min_range} and {config.max_range} m")
     policy = config.deskew
-    if policy in ("auto", "detect"):
+    if policy == "auto":
         policy = "timestamps" if times is not None else "azimuth"
     if policy == "timestamps":
         if times is None:

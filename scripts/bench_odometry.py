@@ -6,10 +6,9 @@ DATA is a KITTI-layout root (real or from ``gloam simulate``). Every method gets
 scans, in order, with the same number of threads:
 
 * ``gicp``, ``gicp_da``, ``gicp_ce``, ``gloam``: this project's frame-to-model odometry with
-  ``configs/<method>.yaml``, deskewed with the scans' per-point times (where absent, ``auto``
-  resolves as ``gloam run`` does on the KITTI layout: ``detect``); the learned methods take
-  ``--weights`` and the model's backbone features, whose extraction is timed apart from
-  registration (``median_ms_features``);
+  ``configs/<method>.yaml``, deskewed with the scans' per-point times (azimuth-derived where
+  absent); the learned methods take ``--weights`` and the model's backbone features, whose
+  extraction is timed apart from registration (``median_ms_features``);
 * ``small_gicp``: its documented scan-to-model odometry (VGICP on a GaussianVoxelMap of 1 m
   voxels with an LRU horizon, 0.25 m downsampling, constant-velocity guess), no deskew;
 * ``kiss-icp``: KISS-ICP with its default configuration, deskew on (times in [0, 1]).
@@ -47,14 +46,9 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
     import dataclasses
 
     from gloam_jax.odometry import Odometry
-    from gloam_jax.preprocess import resolve_deskew
 
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
-    # auto as `gloam run` resolves it on the KITTI layout (the scans' times, else detect)
-    prep = config.preprocess
-    used, _ = resolve_deskew(prep.deskew, seq.point_times(0) is not None, distorted_layout=True)
-    config = dataclasses.replace(config, preprocess=dataclasses.replace(prep, deskew=used))
     odometry = Odometry(config)
     backbone = None
     if odometry.needs_features:
@@ -73,9 +67,7 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         t0 = time.perf_counter()
         odometry.register_frame(scan, point_times, dt, features=features)
         ms.append(1e3 * (time.perf_counter() - t0))
-    odometry.decide_deskew()  # deskew: detect, on a run too short to have decided
     extra = {
-        "deskew_decision": odometry.deskew_decision,
         "compiles_after_frame_20": counter.count - late_compiles if n > 20 else None,
         "rounds_per_frame": float(np.mean([s.iterations for s in odometry.status[1:]])),
         "degenerate_frames": int(sum(s.degenerate for s in odometry.status)),

@@ -7,12 +7,11 @@
 Every method gets the scans as a raw KITTI drive gives them: motion-distorted where the world
 was simulated so, and **without per-point times** (the simulator's ``timestamps/`` are not
 read), so each method deskews, if at all, from the azimuth. ``gicp`` is
-``configs/gicp.yaml`` through :func:`bench_odometry.run_ours` (deskew ``auto`` -> detect on
-the KITTI layout: azimuth unless the scans fit better without); ``--variant NAME=YAML``
-adds a run of ``gicp.yaml`` with those settings replaced (one candidate change at a time).
-small_gicp and KISS-ICP run as in ``bench_odometry.py``; GenZ-ICP with its default
-configuration and deskew on (azimuth times in [0, 1], like KISS-ICP), and ``genz-icp-kitti``
-with the KITTI preset it ships.
+``configs/gicp.yaml`` through :func:`bench_odometry.run_ours` (deskew ``auto`` -> azimuth on
+the KITTI layout); ``--variant NAME=YAML`` adds a run of ``gicp.yaml`` with those settings
+replaced (one candidate change at a time). small_gicp and KISS-ICP run as in
+``bench_odometry.py``; GenZ-ICP with its default configuration and deskew on (azimuth times in
+[0, 1], like KISS-ICP), and ``genz-icp-kitti`` with the KITTI preset it ships.
 
 Scores: the devkit's t_err (%) and r_err (deg/100 m) over segments of 10-80 % of each window's
 path (``make_tables.window_rte``: the windows are shorter than 100-800 m), and the median

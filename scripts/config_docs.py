@@ -33,14 +33,12 @@ turns downsampling off; `preprocess.min_range: 0` keeps the closest returns.
 
 **Deskew** (`preprocess.deskew`): `auto` uses per-point times when the scans carry them
 (`timestamps/NNNNNN.npy` in the KITTI layout, a `t`/`time`/`timestamp` field in PCD or PLY
-scans), `detect` for the KITTI layout without them, and nothing otherwise; the run summary and
-`metrics.json` (`deskew`) say which was used and why. `detect` deskews from the azimuth, and
-beside it, for the first moving frames (10 that moved over 0.1 m, from frame 3; at most 100),
-runs the odometry without deskew; then it keeps the one whose scans fit their map better (mean
-GICP cost per inlier) and records why (`deskew.detected`). Distorted scans fit better deskewed,
-scans already deskewed better as they are ([peers.md](peers.md)): KITTI odometry's own readme,
-as quoted in public issue threads, says its Velodyne scans were egomotion-compensated. Those
-frames cost two registrations each.
+scans), the azimuth for the KITTI layout without them (taken as motion-distorted, as the
+simulator writes it), and nothing otherwise; the run summary and `metrics.json` (`deskew`) say
+which was used and why. KITTI odometry's own readme, as quoted in public issue threads, says
+its Velodyne scans were already egomotion-compensated, and 16 real KITTI scans fit the map no
+worse without deskew (`scripts/probe_deskew_fit.py`, [peers.md](peers.md)): for the real
+benchmark's scans `deskew: off` may be right (unmeasured: no ground truth here).
 Per-point times may be seconds from the sweep's start, from mid-sweep or before its end, a
 [0, 1] fraction, or absolute seconds / nanoseconds (also ms, us): like KISS-ICP, they are
 mapped by their span onto one sweep of `preprocess.sweep_duration`, and the convention found

@@ -12,7 +12,7 @@ from gloam_jax import io
 from gloam_jax.config import load_config
 from gloam_jax.datasets import open_dataset
 from gloam_jax.errors import InputError
-from gloam_jax.odometry import Odometry, OdometryConfig
+from gloam_jax.odometry import OdometryConfig
 from gloam_jax.pipeline import run_dataset, run_sequence, select_frames
 from gloam_jax.preprocess import (
     PreprocessConfig,
@@ -59,11 +59,8 @@ def test_a_span_that_fits_no_convention_is_an_error():
 
 
 def test_the_policy_follows_the_data():
-    assert resolve_deskew("detect", False, True)[0] == "detect"
-    assert resolve_deskew("detect", True, True)[0] == "timestamps"  # the times say it
     assert resolve_deskew("auto", True, False)[0] == "timestamps"
-    # KITTI layout: azimuth deskew unless the scans fit better without (deskewed already)
-    assert resolve_deskew("auto", False, True)[0] == "detect"
+    assert resolve_deskew("auto", False, True)[0] == "azimuth"  # KITTI layout: distorted
     used, why = resolve_deskew("auto", False, False)
     assert used == "off" and "azimuth" in why  # says how to turn it on
     assert resolve_deskew("azimuth", True, False)[0] == "azimuth"
@@ -154,45 +151,14 @@ def test_undistorted_scans_in_a_folder_are_not_deskewed(undistorted, tmp_path):
             ("auto", "off", "azimuth")}  # fmt: skip
     np.testing.assert_allclose(read["auto"], read["off"], atol=1e-9)
     assert np.abs(read["azimuth"] - read["off"]).max() > 1e-4  # deskewing would change them
-    # The same scans in the KITTI layout without timestamps: azimuth unless their fit says
-    # otherwise, as it does here (test_detect_keeps_deskew_...).
+    # The same scans in the KITTI layout without timestamps: known distorted, so azimuth.
     kitti = tmp_path / "kitti"
     shutil.copytree(undistorted, kitti)
     shutil.rmtree(kitti / "sequences" / "00" / "timestamps")
-    result = run_sequence(kitti, "00", OdometryConfig(), tmp_path / "kitti_run", frames=6)
-    assert result["deskew"]["used"] == "detect"
-    assert result["deskew"]["detected"].startswith("off: the scans fit better as they are")
+    result = run_sequence(kitti, "00", OdometryConfig(), tmp_path / "kitti_run", frames=3)
+    assert result["deskew"]["used"] == "azimuth"
     saved = json.loads((tmp_path / "kitti_run" / "metrics.json").read_text())
     assert saved["deskew"] == result["deskew"]
-    np.testing.assert_allclose(
-        io.read_kitti_poses(tmp_path / "kitti_run" / "00_poses_lidar_kitti.txt"),
-        read["off"],
-        atol=1e-9,
-    )
-
-
-def test_detect_keeps_deskew_for_distorted_scans_and_drops_it_for_undistorted(
-    sim_sequence, undistorted
-):
-    """deskew: detect registers each scan without per-point times twice, deskewed from the
-    azimuth and not, and keeps the odometry whose scans fit their map better: deskewed for
-    the distorted drive (0.568 against 0.579 per inlier over frames 3-11), as they are for the
-    undistorted one (0.728 against 0.745 over frames 3-5). The poses are then exactly those of
-    that policy alone. (`gloam run` records the decision: test_undistorted_scans_in_a_folder.)"""
-    detect = OdometryConfig(preprocess=PreprocessConfig(deskew="detect"))
-    for root, frames, kept in ((sim_sequence, 12, "azimuth"), (undistorted, 6, "off")):
-        seq = io.KittiSequence(root, "00")
-        runs = {}
-        for config in (detect, OdometryConfig(preprocess=PreprocessConfig(deskew=kept))):
-            odometry = Odometry(config)
-            for i in range(frames):
-                odometry.register_frame(seq.scan(i), None, 0.1)
-            odometry.decide_deskew()
-            runs[config.preprocess.deskew] = odometry
-        decision = runs["detect"].deskew_decision
-        assert decision.startswith("deskewed" if kept == "azimuth" else "off"), decision
-        assert runs["detect"].shadow is None
-        np.testing.assert_array_equal(np.stack(runs["detect"].poses), np.stack(runs[kept].poses))
 
 
 def test_times_that_are_all_equal_are_one_instant_and_deskew_nothing(undistorted, tmp_path):
