@@ -70,7 +70,7 @@ def test_the_first_frames_are_redone_with_the_first_velocity(sim_sequence):
 
 def test_the_residual_reports_how_well_a_scan_fits(sim_sequence):
     """FrameStatus.residual, GICP's cost per inlier: none for the anchor, and higher for a
-    scan with 5 cm of range noise than for the same scan clean."""
+    scan whose points carry 5 cm of Gaussian noise than for the same scan clean."""
     seq = io.KittiSequence(sim_sequence, "00")
     rng = np.random.default_rng(0)
     residuals = []
