@@ -17,7 +17,9 @@ deskew unless the name says ``auto``):
   map replaced, in this process only, by small_gicp's: keyframes of 1 cm (every frame), the
   last 100 merged into 1 m voxels, each the mean of its points and of their covariances; each
   source point is paired with the nearest voxel mean, or (as VGICP does) with the voxel it
-  falls in, within the correspondence distance.
+  falls in, within the correspondence distance;
+* ``ours_voxels_keyframes_auto``: that voxel map (VGICP's pairing) built from ``gicp.yaml``'s
+  own keyframes (1 m apart, the last 20), with its deskew.
 
 Scores: devkit t_err (%) / r_err (deg/100 m) over 10-80 % of the window's path. ``OUT.json``
 is rewritten atomically after each run (a killed probe resumes); ``OUT.md`` is the table.
@@ -173,6 +175,7 @@ def main() -> None:
         "ours_voxels_nearest_off": ({**every, "preprocess": {"deskew": "off"}}, True),
         "ours_voxels_off": ({**every, "preprocess": {"deskew": "off"}}, False),
         "ours_voxels_auto": (every, False),
+        "ours_voxels_keyframes_auto": ({}, False),
     }
     runs = ["sg_vgicp_every", "sg_vgicp_keyframes", "sg_gicp_points", *ours]
     if args.runs is not None:
