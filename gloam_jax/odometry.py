@@ -303,7 +303,8 @@ class Odometry:
             T_world_target, sizes, prior = np.eye(4), (scan_size, self.map.size), T_pred
         result = align_prepared(target, cloud, prior, cfg.gicp, sizes)
         status.iterations, status.num_inliers = result.iterations, result.num_inliers
-        status.residual = result.error / max(result.num_inliers, 1)
+        if result.num_inliers:  # without inliers the fit is unknown, not perfect
+            status.residual = result.error / result.num_inliers
         status.converged = result.converged
         T, weak = result.T_target_source, result.weak_directions
         status.condition = result.condition

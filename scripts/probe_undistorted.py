@@ -37,6 +37,7 @@ from bench_odometry import _CompileCounter, run_ours
 from compare_peers import RawScans, score
 from make_tables import commit
 
+from gloam_jax import covariance as cov
 from gloam_jax import io
 from gloam_jax import odometry as odo
 from gloam_jax import pointcloud as pc
@@ -75,17 +76,14 @@ class VoxelLookup:
 def _gaussian_voxels(keyframes: list[dict], nearest: bool) -> PreparedCloud:
     points = np.concatenate([f["points"] for f in keyframes])
     covs = np.concatenate([f["covs"] for f in keyframes])
-    keys = _voxel_keys(points)
-    order = np.argsort(keys, kind="stable")
-    keys = keys[order]
-    starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
-    counts = np.diff(np.r_[starts, len(keys)])
-    means = np.add.reduceat(points[order], starts) / counts[:, None]
-    covs = np.add.reduceat(covs[order], starts) / counts[:, None, None]
-    values, vectors = np.linalg.eigh(covs)
-    planarity = np.clip((values[:, 1] - values[:, 0]) / np.maximum(values[:, 2], 1e-12), 0, 1)
-    tree = KdTree(means, "voxel map") if nearest else VoxelLookup(keys[starts], means)
-    return PreparedCloud(means, covs, tree, None, normals=vectors[..., 0], planarity=planarity)
+    means, covs = pc.voxel_means(points, VOXEL, [points, covs])
+    # A voxel's mean lies in the voxel, so it gives the voxel's key; sorted for the lookup.
+    keys = _voxel_keys(means)
+    order = np.argsort(keys)
+    keys, means, covs = keys[order], means[order], covs[order]
+    normals, planarity = (np.asarray(a, np.float64) for a in cov.surface(*np.linalg.eigh(covs)))
+    tree = KdTree(means, "voxel map") if nearest else VoxelLookup(keys, means)
+    return PreparedCloud(means, covs, tree, None, normals=normals, planarity=planarity)
 
 
 class _MapRows:
@@ -116,13 +114,14 @@ def voxel_map(nearest: bool):
 
 
 def _scans(raw: RawScans, n: int):
+    """small_gicp's prepared scans, cropped and downsampled as ``gicp.yaml`` has it."""
     import small_gicp
 
+    prep = load_config("gicp").preprocess
     for i in range(n):
         points = raw.scan(i)[:, :3].astype(np.float64)
-        r = np.linalg.norm(points, axis=1)
-        points = points[np.isfinite(r) & (r >= 3.0) & (r <= 100.0)]
-        yield small_gicp.preprocess_points(points, 0.5, num_threads=2)[0]
+        points = pc.crop_range(points, prep.min_range, prep.max_range)
+        yield small_gicp.preprocess_points(points, prep.downsampling_resolution, num_threads=2)[0]
 
 
 def _moved(last: np.ndarray | None, T: np.ndarray) -> bool:
