@@ -100,15 +100,25 @@ def check_method(method: str) -> tuple[bool, bool]:
     return METHODS[method]
 
 
+class Head(NamedTuple):
+    """The net backbone's last layer, fine-tuned in training: weight (H, D), bias (D,)."""
+
+    weight: Array
+    bias: Array
+
+
 class Learned(NamedTuple):
     """The learned parts a registration uses, as a pytree; None keeps plain GICP's step.
 
     ``eps`` is Algorithm 1's fixed floor, not a trained weight: :func:`attributes` stops its
-    gradient, so a trainer may carry a whole Learned as its parameters."""
+    gradient, so a trainer may carry a whole Learned as its parameters. ``head`` is set only
+    while training fine-tunes the backbone's last layer: the batch then recomputes the scans'
+    PCA features from it (:mod:`gloam_jax.training.head`); odometry never reads it."""
 
     conversion: FeatureConversionMLP | None = None  # data association in [xyz, f] space
     eigenvalue: EigenvalueEstimationMLP | None = None  # covariances by Algorithm 1
     eps: float | Array = DEFAULT_EPS
+    head: Head | None = None
 
     def as_gicp(self) -> Learned:
         """These parts set to register as plain GICP with the plane regulariser: constant
@@ -124,7 +134,9 @@ class Learned(NamedTuple):
     def for_method(self, method: str) -> Learned:
         """The parts that ``method`` (a key of :data:`METHODS`) uses; the others None."""
         da, ce = check_method(method)
-        return Learned(self.conversion if da else None, self.eigenvalue if ce else None, self.eps)
+        return self._replace(
+            conversion=self.conversion if da else None, eigenvalue=self.eigenvalue if ce else None
+        )
 
 
 def without_gicp_constants(parts: Learned, regularizer: str) -> Learned:

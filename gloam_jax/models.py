@@ -257,6 +257,10 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
     backbone, options = metadata.get("backbone"), metadata.get("backbone_options")
     if not isinstance(backbone, str) or not isinstance(options, dict):
         raise InputError(p, "metadata needs a backbone name and a backbone_options object")
+    weights = options.get("weights")
+    if isinstance(weights, str) and (p.parent / weights).is_file() and weights != "default":
+        # A network file beside the model (a fine-tuned backbone), named relative to it.
+        options = {**options, "weights": str(p.parent / weights)}
     provenance = metadata.get("provenance", {})
     if not isinstance(provenance, dict):
         raise InputError(p, "metadata 'provenance' must be an object")

@@ -226,6 +226,22 @@ def deskew(
     return np.asarray(out, dtype=np.float64)[: len(points)]
 
 
+def centre_rows(
+    scan: np.ndarray, config: PreprocessConfig, source: str | None = None
+) -> np.ndarray:
+    """Which voxel centre of :func:`preprocess_scan` (without ``buckets``, so nothing thinned)
+    each raw point (N,) went into, -1 for points it dropped: the map that averages per-point
+    quantities onto the centres (the fine-tuned backbone's features in training)."""
+    keep, _ = pc.range_mask(scan, config.min_range, config.max_range, source)
+    rows = np.full(len(scan), -1, np.int64)
+    if config.downsampling_resolution <= 0:
+        rows[keep] = np.arange(np.count_nonzero(keep))
+    elif keep.any():
+        rows[keep] = pc.voxel_index(scan[keep, :3].astype(np.float64),
+                                    config.downsampling_resolution)[0]  # fmt: skip
+    return rows
+
+
 def preprocess_scan(
     scan: np.ndarray,
     times: np.ndarray | None,

@@ -49,7 +49,9 @@ def _run(config_path: Path, run_dir: Path, cache: Path) -> dict:
     np.savez(run_dir / "step.npz", before=flat(params), after=flat(trees["params"]),
              moment=flat(trees["state"][1][0].mu))  # fmt: skip
     # What one device computes: XLA's count for the compiled program (a device's share).
-    compiled = evaluator._run.lower(params, evaluator._scans, evaluator._pairs).compile()
+    compiled = evaluator._run.lower(
+        params, evaluator._scans, evaluator._pairs, evaluator._head
+    ).compile()
     cost = compiled.cost_analysis()
     return {
         "devices": len(jax.devices()),

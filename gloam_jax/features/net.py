@@ -151,11 +151,32 @@ class SegNet(eqx.Module):
         self.classify = Dense(config.embed, config.num_classes, key=k[4])
 
     def __call__(self, x: NetInputs) -> tuple[jax.Array, jax.Array]:
+        embedding = embed(self.decode.weight, self.decode.bias, self.hidden(x))
+        return embedding, self.classify(embedding)
+
+    def hidden(self, x: NetInputs) -> jax.Array:
+        """The decoder's input (N0, widths[1] + widths[2]): all but the last layers."""
         h0 = self.local0(jax.nn.relu(self.stem(x.inputs)), x.xyz, x.nbr0)
         h1 = jnp.max(h0[x.nbr0[x.sub]], axis=1)  # each sampled voxel pools its neighbourhood
         h1 = self.local1(h1, x.xyz[x.sub], x.nbr1)
-        embedding = jax.nn.relu(self.decode(jnp.concatenate([h0, h1[x.up]], axis=-1)))
-        return embedding, self.classify(embedding)
+        return jnp.concatenate([h0, h1[x.up]], axis=-1)
+
+
+def embed(weight: jax.Array, bias: jax.Array, hidden: jax.Array) -> jax.Array:
+    """The embedding (..., embed) of the decoder's input (..., widths[1] + widths[2]) by the
+    last layer ``weight``, ``bias``: the one fine-tuning through the odometry loss trains."""
+    return jax.nn.relu(hidden @ weight + bias)
+
+
+def with_decode(net: SegNet, weight: jax.Array, bias: jax.Array) -> SegNet:
+    """``net`` with the last layer's weights replaced (a fine-tuned one)."""
+    if weight.shape != net.decode.weight.shape or bias.shape != net.decode.bias.shape:
+        raise InputError(
+            None,
+            f"a decode layer of shapes {weight.shape}, {bias.shape} does not fit the network's "
+            f"{net.decode.weight.shape}, {net.decode.bias.shape}",
+        )
+    return eqx.tree_at(lambda n: (n.decode.weight, n.decode.bias), net, (weight, bias))
 
 
 def voxelize(scan: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -222,20 +243,49 @@ def _forward(net: SegNet, x: NetInputs) -> tuple[jax.Array, jax.Array]:
     return net(x)
 
 
+@eqx.filter_jit
+def _hidden(net: SegNet, x: NetInputs) -> jax.Array:
+    return net.hidden(x)
+
+
+def _scan_voxels(scan: np.ndarray, config: NetConfig) -> tuple[NetInputs, np.ndarray, int] | None:
+    """The network's inputs for a raw scan (N, 3+), each row's voxel (N,) (-1 for rows with
+    non-finite coordinates) and the voxel count; None for a scan without finite rows."""
+    finite = np.all(np.isfinite(scan[:, :3]), axis=1)
+    if not finite.any():
+        return None
+    xyz, intensity, inverse = voxelize(scan[finite], config.voxel_size)
+    voxel = np.full(len(scan), -1, np.int64)
+    voxel[finite] = inverse
+    return build_inputs(xyz, intensity, config), voxel, len(xyz)
+
+
 def run_scan(net: SegNet, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Embedding (N, embed) float32 and logits (N, C) of a raw scan (N, 3+), row-aligned;
     rows with non-finite coordinates get zeros."""
-    finite = np.all(np.isfinite(scan[:, :3]), axis=1)
     c = net.config
     embedding = np.zeros((len(scan), c.embed), np.float32)
     logits = np.zeros((len(scan), c.num_classes), np.float32)
-    if not finite.any():
+    voxels = _scan_voxels(scan, c)
+    if voxels is None:
         return embedding, logits
-    xyz, intensity, inverse = voxelize(scan[finite], c.voxel_size)
-    e, lg = _forward(net, build_inputs(xyz, intensity, c))
-    embedding[finite] = np.asarray(e)[: len(xyz)][inverse]
-    logits[finite] = np.asarray(lg)[: len(xyz)][inverse]
+    inputs, voxel, m = voxels
+    e, lg = _forward(net, inputs)
+    finite = voxel >= 0
+    embedding[finite] = np.asarray(e)[:m][voxel[finite]]
+    logits[finite] = np.asarray(lg)[:m][voxel[finite]]
     return embedding, logits
+
+
+def run_hidden(net: SegNet, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The decoder's input per voxel (M, widths[1] + widths[2]) float32 and each raw row's
+    voxel (N,) (-1: non-finite): :func:`embed` of it with ``net.decode``'s weights, indexed by
+    the voxels, is :func:`run_scan`'s embedding. Fine-tuning the last layer needs only these."""
+    voxels = _scan_voxels(scan, net.config)
+    if voxels is None:
+        return np.zeros((0, sum(net.config.widths[1:])), np.float32), np.full(len(scan), -1)
+    inputs, voxel, m = voxels
+    return np.asarray(_hidden(net, inputs))[:m], voxel
 
 
 def _named_leaves(net: SegNet) -> dict[str, np.ndarray]:

@@ -34,13 +34,15 @@ class FeaturePCA(NamedTuple):
     def input_dim(self) -> int:
         return self.components.shape[1]
 
+    def affine(self) -> tuple[np.ndarray, np.ndarray]:
+        """The projection as one affine map ``x W + bias``: W (D, C), bias (C,), float64."""
+        # ((x - mean) / scale) C^T = x W + bias: no (N, D) temporaries.
+        return (self.components / self.scale).T, -(self.mean / self.scale) @ self.components.T
+
     def transform(self, features: np.ndarray | Array) -> np.ndarray | Array:
         """Projected features (..., C) of features (..., D), NumPy or JAX, in their dtype."""
-        # One affine map, ((x - mean) / scale) C^T = x W + bias: no (N, D) temporaries.
-        dtype = features.dtype
-        W = (self.components / self.scale).T
-        bias = -(self.mean / self.scale) @ self.components.T
-        return features @ W.astype(dtype) + bias.astype(dtype)
+        W, bias = self.affine()
+        return features @ W.astype(features.dtype) + bias.astype(features.dtype)
 
 
 def fit_pca(

@@ -35,6 +35,7 @@ from gloam_jax.errors import InputError
 from gloam_jax.gicp import Cloud, GICPConfig, gicp_round
 from gloam_jax.io import lidar_to_cam_poses
 from gloam_jax.learned import Learned, attributes
+from gloam_jax.training.head import HeadData, with_head
 from gloam_jax.training.losses import TRAINING_FRACTIONS, SegmentPlan, chain, segment_errors
 from gloam_jax.training.objective import objective
 
@@ -138,6 +139,7 @@ class BatchData:
     pairs: PairBatch
     windows: list[Window]
     regularizer: str = "plane"  # plain GICP's covariances (the preprocessing's)
+    head: HeadData | None = None  # fine-tuning the backbone's last layer (training.head)
 
     @property
     def num_pairs(self) -> int:
@@ -288,7 +290,8 @@ def loss(
     fraction, Eq. (8)'s loss), or with plain GICP's per-window errors ``reference`` (W,) the
     ``gicp_ratio`` of :mod:`gloam_jax.training.objective`. The pairs split over ``mesh`` (see
     :func:`register_sharded`), the same loss to float rounding."""
-    T_rel = register_sharded(learned, data.scans, data.pairs, config, data.regularizer, mesh)
+    scans = with_head(learned, data.scans, data.head)
+    T_rel = register_sharded(learned, scans, data.pairs, config, data.regularizer, mesh)
     return objective(window_errors(T_rel, data.windows)[0], reference, worse_penalty)
 
 
@@ -305,20 +308,23 @@ class Evaluator:
     """Jitted batch evaluation of learned parts on fixed data: ``Evaluator(data, cfg)(learned)``.
     Compiles once per structure of ``learned`` (which parts are present). The pairs are split
     over ``mesh`` (default :func:`pair_mesh`: every local device); the scans and padded pairs
-    are placed on its devices once, here."""
+    are placed on its devices once, here. ``learned.head`` recomputes the scans' PCA
+    features from ``data.head``, as in :func:`loss`."""
 
     def __init__(self, data: BatchData, config: BatchConfig, mesh: Mesh | None = None) -> None:
         self.data, self.config = data, config
         self.mesh = pair_mesh() if mesh is None else mesh
         windows, regularizer, mesh = data.windows, data.regularizer, self.mesh
         self._scans, self._pairs = place(data.scans, data.pairs, mesh)
+        self._head = jax.device_put(data.head, NamedSharding(mesh, P()))
 
-        def run(learned, scans, pairs):
+        def run(learned, scans, pairs, head):
+            scans = with_head(learned, scans, head)
             T_rel = register_sharded(learned, scans, pairs, config, regularizer, mesh)
             return (*window_errors(T_rel, windows), T_rel[: data.num_pairs])
 
         self._run = jax.jit(run)
 
     def __call__(self, learned: Learned) -> Evaluation:
-        t, r, T = self._run(learned, self._scans, self._pairs)
+        t, r, T = self._run(learned, self._scans, self._pairs, self._head)
         return Evaluation(np.asarray(t), np.asarray(r), np.asarray(T))

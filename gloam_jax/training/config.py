@@ -56,10 +56,17 @@ class GradConfig:
     # Source points per pair in a step: a fresh random subset of the prepared ones each step
     # (stochastic gradients, cheaper steps); None: all. Evaluations always use all.
     source_points: int | None = None
+    # Fine-tune the net backbone's last layer with the MLPs, at this Adam learning rate
+    # (gloam_jax.training.head); None: the backbone stays frozen.
+    head_learning_rate: float | None = None
 
     def __post_init__(self) -> None:
         if self.source_points is not None and self.source_points < 1:
             raise InputError(None, f"grad.source_points must be >= 1, not {self.source_points}")
+        if self.head_learning_rate is not None and not self.head_learning_rate > 0:
+            raise InputError(
+                None, f"grad.head_learning_rate must be positive, not {self.head_learning_rate}"
+            )
 
 
 @dataclass(frozen=True)

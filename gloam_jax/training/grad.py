@@ -49,7 +49,17 @@ CHECKPOINT = "checkpoint.npz"
 
 def _optimizer(problem: Problem) -> optax.GradientTransformation:
     cfg = problem.config.grad
-    return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), optax.adam(cfg.learning_rate))
+    adam = optax.adam(cfg.learning_rate)
+    if cfg.head_learning_rate is not None:  # the backbone's last layer at its own rate
+
+        def labels(p: Learned) -> Learned:
+            mlps = jax.tree_util.tree_map(lambda _: "mlp", p._replace(head=None))
+            return mlps._replace(head=jax.tree_util.tree_map(lambda _: "head", p.head))
+
+        adam = optax.multi_transform(
+            {"mlp": adam, "head": optax.adam(cfg.head_learning_rate)}, labels
+        )
+    return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), adam)
 
 
 def save_checkpoint(path, trees: dict, meta: dict) -> None:
@@ -125,20 +135,21 @@ def train_grad(
     data, config = problem.data, problem.config.batch
     worse_penalty = problem.config.worse_penalty
     scans, pairs = batch.place(data.scans, data.pairs, mesh)
+    head = jax.device_put(data.head, replicated)
 
-    def loss(p: Learned, scans, pairs):
-        step_data = batch.BatchData(scans, pairs, data.windows, data.regularizer)
+    def loss(p: Learned, scans, pairs, head):
+        step_data = batch.BatchData(scans, pairs, data.windows, data.regularizer, head)
         return batch.loss(p, step_data, config, mesh, problem.reference, worse_penalty)
 
     rows = data.pairs.rows.shape[1]
     subset = rows if cfg.source_points is None else min(cfg.source_points, rows)
 
     @jax.jit
-    def update(p, s, scans, pairs, at):
+    def update(p, s, scans, pairs, head, at):
         if subset < rows:  # the same random row slots of every pair (their rows are random)
             key = jax.random.fold_in(jax.random.PRNGKey(problem.config.seed), at)
             pairs = batch.select_rows(pairs, jax.random.permutation(key, rows)[:subset])
-        value, grads = jax.value_and_grad(loss)(p, scans, pairs)
+        value, grads = jax.value_and_grad(loss)(p, scans, pairs, head)
         ok = jnp.isfinite(value) & _finite(grads)
         grads = jax.tree_util.tree_map(lambda g: jnp.where(ok, g, 0.0), grads)
         updates, new_s = optimizer.update(grads, s, p)
@@ -179,7 +190,7 @@ def train_grad(
         # outside Python's lock, so the two overlap. A finished run compiles nothing.
         with ThreadPoolExecutor(1) as pool:
             compiling = (
-                pool.submit(lambda: update.lower(params, state, scans, pairs, step).compile())
+                pool.submit(lambda: update.lower(params, state, scans, pairs, head, step).compile())
                 if step < cfg.steps
                 else None
             )
@@ -189,7 +200,7 @@ def train_grad(
             update_step = update if compiling is None else compiling.result()
         soft = None
         while step < cfg.steps:
-            params, state, value, ok = update_step(params, state, scans, pairs, step)
+            params, state, value, ok = update_step(params, state, scans, pairs, head, step)
             soft = float(value) if bool(ok) else None
             step += 1
             clock.lap()

@@ -26,15 +26,18 @@ import numpy as np
 from gloam_jax import io
 from gloam_jax.config import config_dict, dump_config, load_config
 from gloam_jax.errors import InputError
-from gloam_jax.features import Backbone, fit_pca, get_backbone
+from gloam_jax.features import Backbone, NetBackbone, fit_pca, get_backbone
+from gloam_jax.features.net import save_net, with_decode
 from gloam_jax.learned import Learned
 from gloam_jax.models import GLOAMModel, init_model, load_model, save_model, with_mlps
 from gloam_jax.training.batch import BatchData, Evaluator
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.data import load_windows, open_sequences
+from gloam_jax.training.head import initial_head, prepare_head
 from gloam_jax.training.objective import Score, score
 
 Progress = Callable[[str, int, int], None]  # (what, done, total)
+FINE_TUNED_NET = "net.npz"  # the fine-tuned backbone, beside the exported model.npz
 
 
 def fit_initial_model(
@@ -68,11 +71,26 @@ def fit_initial_model(
     )
 
 
-def trainable_params(model: GLOAMModel, method: str) -> Learned:
+def trainable_params(model: GLOAMModel, method: str, head: bool = False) -> Learned:
     """``model``'s parameters as training holds them (and checkpoints them): the MLPs
-    ``method`` uses (the other None) and eps as a fixed array leaf (its gradient is stopped)."""
+    ``method`` uses (the other None), eps as a fixed array leaf (its gradient is stopped) and,
+    with ``head``, the net backbone's last layer (:mod:`gloam_jax.training.head`)."""
     start = model.learned.for_method(method)
-    return start._replace(eps=jnp.asarray(model.eps, jnp.float32))
+    start = start._replace(eps=jnp.asarray(model.eps, jnp.float32))
+    return start._replace(head=initial_head(model.backbone())) if head else start
+
+
+def _fine_tunes(config: TrainConfig, model: GLOAMModel) -> bool:
+    """Whether the run fine-tunes the backbone's last layer; InputError where it cannot."""
+    if config.grad.head_learning_rate is None:
+        return False
+    if config.mode != "grad" or model.backbone_name != NetBackbone.name:
+        raise InputError(
+            None,
+            "grad.head_learning_rate fine-tunes the net backbone in gradient mode; this run is "
+            f"mode '{config.mode}' on backbone '{model.backbone_name}'",
+        )
+    return True
 
 
 @dataclasses.dataclass
@@ -100,7 +118,8 @@ class Problem:
     @property
     def init_params(self) -> Learned:
         """The trainable parameters at the start (:func:`trainable_params`)."""
-        return trainable_params(self.model, self.config.method)
+        head = _fine_tunes(self.config, self.model)
+        return trainable_params(self.model, self.config.method, head)
 
     def training_loss(self, params: Learned) -> Score:
         """The objective, mean t_err (fraction) and r_err (rad/m) over the training windows,
@@ -149,8 +168,17 @@ class Problem:
         conversion = self.model.conversion if params.conversion is None else params.conversion
         eigenvalue = self.model.eigenvalue if params.eigenvalue is None else params.eigenvalue
         model = with_mlps(self.model, conversion, eigenvalue, provenance)
+        if params.head is not None:
+            # The fine-tuned network beside the model file, which names it relative to itself.
+            backbone = self.model.backbone()
+            net = with_decode(backbone.net, params.head.weight, params.head.bias)
+            save_net(path.parent / FINE_TUNED_NET, net, {
+                "fine_tuned_from": backbone.weights, "layers": "decode",
+                "through": "the odometry loss (gloam train, gradient mode)",
+                "backbone_provenance": backbone.provenance, **provenance})  # fmt: skip
+            model = dataclasses.replace(model, backbone_options={"weights": FINE_TUNED_NET})
         save_model(path, model)
-        return model
+        return load_model(path)
 
 
 # What a resumed run may change: the counts (a run may be extended) and where its TPE study lives
@@ -236,13 +264,14 @@ def setup(
         )
         save_model(start, model)
     backbone = model.backbone()
+    head = _fine_tunes(config, model)
 
     def step(name: str, total: int, k: int) -> None:
         if progress is not None:
             progress(f"preparing {name}", k + 1, total)
 
     def windows(root: str | tuple[str, ...], sequences: tuple[str, ...]) -> BatchData:
-        return load_windows(
+        data = load_windows(
             root,
             sequences,
             config.preprocess,
@@ -253,6 +282,12 @@ def setup(
             cache_dir=run_dir / "cache" if cache_dir is None else cache_dir,
             progress=step,
         )
+        if head:
+            data.head = prepare_head(
+                open_sequences(root, sequences), config.preprocess, backbone, model.pca,
+                data.scans.mask.shape[1], frames=config.frames, progress=progress,
+            )  # fmt: skip
+        return data
 
     hard = dataclasses.replace(config.batch, association="hard")
     data = windows(config.training_roots, config.sequences)
