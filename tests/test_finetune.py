@@ -79,3 +79,13 @@ def test_fine_tuning_needs_the_net_backbone_in_gradient_mode(tiny_training, tmp_
         setup(cfg, tmp_path / "run")
     with pytest.raises(InputError, match="head_learning_rate must be positive"):
         GradConfig(head_learning_rate=0.0)
+
+
+def test_a_run_without_a_start_model_fits_the_pca_on_the_configured_backbone(
+    tiny_training, tmp_path
+):
+    cfg = tiny_training.config(init_model=None, backbone="net", pca_every=3, grad=GRAD)
+    problem = setup(cfg, tmp_path / "run")
+    start = load_model(tmp_path / "run" / "init_model.npz")
+    assert start.backbone_name == "net" and start.pca.components.shape == (6, 32)
+    assert problem.init_params.head is not None  # the net start can be fine-tuned

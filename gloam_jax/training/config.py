@@ -82,6 +82,8 @@ class TrainConfig:
     frames: int | None = None  # first N scans of each sequence (None: all)
     init_model: str | None = None  # start from this model file (its PCA and MLPs)
     init: Literal["random", "gicp"] = "gicp"  # without init_model: how the MLPs start
+    # Without init_model: the feature backbone whose PCA is fitted (net: the shipped weights).
+    backbone: Literal["geometric", "net"] = "geometric"
     pca_every: int = 25  # without init_model: fit the PCA on every N-th training scan
     seed: int = 0  # of the start model, TPE's sampler and the point subsets
     # What is minimised and selected on (gloam_jax.training.objective): "t_err", the windows'

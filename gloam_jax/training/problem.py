@@ -11,6 +11,7 @@ raise, and then resumes), ``init_model.npz`` (the start), ``cache/`` (prepared w
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import time
@@ -115,9 +116,10 @@ class Problem:
     reference: np.ndarray | None = None  # plain GICP's t_err per training window (gicp_ratio)
     validation: Validation | None = None  # what chooses the exported weights, if given
 
-    @property
+    @functools.cached_property
     def init_params(self) -> Learned:
-        """The trainable parameters at the start (:func:`trainable_params`)."""
+        """The trainable parameters at the start (:func:`trainable_params`; once, since the
+        fine-tuned layer's start is read from the backbone's weights file)."""
         head = _fine_tunes(self.config, self.model)
         return trainable_params(self.model, self.config.method, head)
 
@@ -252,7 +254,7 @@ def setup(
         model = load_model(config.init_model)
         save_model(start, model)
     else:
-        extractor = get_backbone("geometric")
+        extractor = get_backbone(config.backbone)
         model = fit_initial_model(
             config.training_roots,
             config.sequences,
