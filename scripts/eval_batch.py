@@ -33,13 +33,14 @@ from gloam_jax.training.grad import CHECKPOINT, load_checkpoint
 from gloam_jax.training.problem import trainable_params
 
 
-def _load(path: Path, method: str) -> GLOAMModel:
+def _load(path: Path) -> GLOAMModel:
     """A model file, or a gradient run's ``checkpoint.npz``: the weights of its last step,
     which the run itself exports only when validation chose that step."""
     if path.name != CHECKPOINT:
         return load_model(path)
     start = load_model(path.parent / "init_model.npz")
-    last = load_checkpoint(path, {"params": trainable_params(start, method)})[0]["params"]
+    trained = load_config(path.parent / "config.yaml", TrainConfig).method
+    last = load_checkpoint(path, {"params": trainable_params(start, trained)})[0]["params"]
     return with_mlps(start, last.conversion, last.eigenvalue, {"checkpoint": str(path)})
 
 
@@ -50,14 +51,14 @@ def main() -> None:
     parser.add_argument("--model", action="append", required=True,
                         help="LABEL=FILE, a model file or a run's checkpoint.npz")  # fmt: skip
     parser.add_argument("--data", action="append", help="root (repeatable; default: the config's)")
-    parser.add_argument("--method", default="gloam")
+    parser.add_argument("--method", default="gloam", help="parts to score: gicp_da,gicp_ce,gloam")
     parser.add_argument("--cache", type=Path, default=Path("runs/cache"))
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
     cfg = load_config(args.config, TrainConfig)
     config = dataclasses.replace(cfg.batch, association="hard")
     models = dict(m.split("=", 1) for m in args.model)
-    loaded = {label: _load(Path(path), args.method) for label, path in models.items()}
+    loaded = {label: _load(Path(path)) for label, path in models.items()}
     first = next(iter(loaded.values()))
     for label, model in loaded.items():
         if not all(np.array_equal(a, b) for a, b in zip(model.pca, first.pca, strict=True)):
@@ -69,7 +70,11 @@ def main() -> None:
     sequences = names if len(roots) == 1 else [f"{Path(r).name}/{n}" for r in roots for n in names]
     evaluate = Evaluator(data, config)
     rows = {"GICP": evaluate(Learned())}
-    rows |= {label: evaluate(learned_parts(m, args.method)) for label, m in loaded.items()}
+    methods = args.method.split(",")
+    for label, model in loaded.items():
+        for method in methods:
+            name = label if len(methods) == 1 else f"{label} ({method})"
+            rows[name] = evaluate(learned_parts(model, method))
     print("| method | " + " | ".join(sequences) + " | mean |")
     print("|" + "---|" * (len(sequences) + 2))
     result = {}
