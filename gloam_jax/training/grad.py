@@ -40,7 +40,7 @@ from gloam_jax.training.problem import (
     Clock,
     Problem,
     choose,
-    plot_histories,
+    plot_objective,
     write_history,
 )
 
@@ -217,16 +217,11 @@ def train_grad(
         checkpoint()
         raise
     write_history(run_dir, history)
-    wall = [h["wall_s"] for h in history]
-    curves = {"training t_err (hard association)": (wall, [100 * h["t_err"] for h in history])}
+    t_err, objective = {"t_err": "training (hard association)"}, {"objective": "training"}
     if problem.validation is not None:
-        curves["validation t_err"] = (wall, [100 * h["val_t_err"] for h in history])
-    plot_histories(
-        curves,
-        run_dir / "loss_curve.png",
-        f"gradient ({config.gicp.adjoint} adjoint, {config.association} association), "
-        f"{problem.config.method}",
-    )  # fmt: skip
+        t_err["val_t_err"], objective["val_objective"] = "validation", "validation (worst root)"
+    title = f"gradient ({config.gicp.adjoint} adjoint, {config.association} association)"
+    plot_objective(problem, history, t_err, objective, f"{title}, {problem.config.method}")
     if not np.isfinite(best):
         raise InputError(run_dir, "training produced no finite loss")
     params, chosen = choose(problem, best_params, best, best_t_err)

@@ -367,9 +367,14 @@ def write_history(run_dir: Path, history: list[dict[str, Any]]) -> None:
 
 
 def plot_histories(
-    curves: dict[str, tuple[list[float], list[float]]], path: str | Path, title: str
+    curves: dict[str, tuple[list[float], list[float]]],
+    path: str | Path,
+    title: str,
+    ylabel: str = "training t_err (%)",
+    reference: tuple[str, float] | None = None,
 ) -> None:
-    """Training t_err (%) against wall time (s): one line per label ``(wall_s, t_err %)``."""
+    """A training value against wall time (s): one line per label ``(wall_s, values)``, and
+    ``reference`` ``(label, value)`` as a dashed line."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -378,8 +383,10 @@ def plot_histories(
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     for label, (wall, value) in curves.items():
         ax.plot(wall, value, marker="." if len(wall) < 60 else None, label=label)
+    if reference is not None:
+        ax.axhline(reference[1], color="0.4", linestyle="--", linewidth=1, label=reference[0])
     ax.set_xlabel("wall time (s)")
-    ax.set_ylabel("training t_err (%)")
+    ax.set_ylabel(ylabel)
     # Bad trials (TPE explores) reach many times the start: keep the scale on the progress.
     start = min(v[0] for _, v in curves.values() if v)
     ax.set_ylim(0.0, 2.0 * start)
@@ -389,6 +396,27 @@ def plot_histories(
     fig.tight_layout()
     io.write_figure(path, fig, dpi=120)
     plt.close(fig)
+
+
+def plot_objective(
+    problem: Problem,
+    history: list[dict[str, Any]],
+    t_err: dict[str, str],
+    objective: dict[str, str],
+    title: str,
+) -> None:
+    """A run's ``loss_curve.png``: the history's ``t_err`` keys (t_err, in %) against wall time,
+    each under its label; with the ``gicp_ratio`` objective its ``objective`` keys instead
+    (what selects and ships, plain GICP = 1), since a falling mean t_err can hide windows that
+    got worse."""
+    wall = [h["wall_s"] for h in history]
+    if problem.config.objective == "gicp_ratio":
+        curves = {label: (wall, [h[k] for h in history]) for k, label in objective.items()}
+        extra = {"ylabel": "objective (plain GICP = 1)", "reference": ("plain GICP", 1.0)}
+    else:
+        curves = {label: (wall, [100 * h[k] for h in history]) for k, label in t_err.items()}
+        extra = {}
+    plot_histories(curves, problem.run_dir / "loss_curve.png", title, **extra)
 
 
 class Clock:

@@ -40,7 +40,7 @@ from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.problem import (
     Problem,
     choose,
-    plot_histories,
+    plot_objective,
     settings_hash,
     setup,
     write_history,
@@ -508,21 +508,15 @@ def _export(problem: Problem, study: optuna.Study) -> Any:
     if not history:
         raise InputError(None, f"study '{study.study_name}' has no completed trial to export")
     write_history(problem.run_dir, history)
-    wall = [h["wall_s"] for h in history]
-    plot_histories(
-        {
-            "trial": (wall, [100 * h["t_err"] for h in history]),
-            "best so far": (wall, [100 * h["best_t_err"] for h in history]),
-        },
-        problem.run_dir / "loss_curve.png",
-        f"TPE, {problem.config.method}",
-    )
+    labels = {"t_err": "trial", "best_t_err": "best so far"}
+    plot_objective(problem, history, labels, {"objective": "trial", "best": "best so far"},
+                   f"TPE, {problem.config.method}")  # fmt: skip
     best, value = _select(problem, study)
     params, chosen = choose(problem, params_from_values(problem, best.params), value, _t_err(best))
     return problem.export(
         params,
         problem.run_dir / "model.npz",
-        {"trials": finished(study), "best_trial": best.number, "wall_s": wall[-1],
+        {"trials": finished(study), "best_trial": best.number, "wall_s": history[-1]["wall_s"],
          "study": study.study_name, **chosen},
     )  # fmt: skip
 
