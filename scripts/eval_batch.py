@@ -38,9 +38,12 @@ def _load(path: Path) -> GLOAMModel:
     which the run itself exports only when validation chose that step."""
     if path.name != CHECKPOINT:
         return load_model(path)
+    run = load_config(path.parent / "config.yaml", TrainConfig)
+    if run.grad.head_learning_rate is not None:
+        # Its MLPs were trained on the fine-tuned layer's features, which the start lacks.
+        raise SystemExit(f"{path}: a fine-tuning run's checkpoint; score its exported model.npz")
     start = load_model(path.parent / "init_model.npz")
-    trained = load_config(path.parent / "config.yaml", TrainConfig).method
-    last = load_checkpoint(path, {"params": trainable_params(start, trained)})[0]["params"]
+    last = load_checkpoint(path, {"params": trainable_params(start, run.method)})[0]["params"]
     return with_mlps(start, last.conversion, last.eigenvalue, {"checkpoint": str(path)})
 
 
