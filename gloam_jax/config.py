@@ -7,6 +7,10 @@ errors naming the file; keys that moved into a section name their new place. A s
 out, or given in part, keeps the defaults of its parent (e.g. ``batch.gicp`` its 5
 candidates). The files in ``configs/`` ship inside the package: :func:`load_config` takes
 their name (``gloam``) as well as a path.
+
+A file may start from another: ``base: gicp`` (a shipped config's name) or ``base: mine.yaml``
+(a path relative to the file) loads that one first, and the file's own settings replace its
+values, section by section. So a variant states only what it changes.
 """
 
 from __future__ import annotations
@@ -90,10 +94,43 @@ def resolve_config(name_or_path: str | Path) -> Path:
 
 def load_config(path: str | Path | None, cls: type = OdometryConfig):
     """Settings of ``cls`` (default: odometry) from a YAML file or a shipped config's name,
-    defaults for what it leaves out; None: all defaults."""
+    on top of its ``base:`` file when it names one, defaults for what they leave out; None:
+    all defaults."""
     if path is None:
         return cls()
-    path = resolve_config(path)
+    return _load(resolve_config(path), cls, ())
+
+
+def _load(path: Path, cls: type, chain: tuple[Path, ...]):
+    """:func:`load_config` of a resolved ``path``; ``chain`` is the files that based on it."""
+    if path.resolve() in chain:
+        raise InputError(path, "its base: settings lead back to itself")
+    values = _read_mapping(path)
+    parent = None
+    if "base" in values:
+        base = values.pop("base")
+        if not isinstance(base, str) or not base:
+            raise InputError(path, f"base must name a shipped config or a YAML file, not {base!r}")
+        target = Path(base)
+        if target.suffix == "" and target.name == base:  # a shipped config's name
+            target = PACKAGED / f"{base}.yaml"
+            if not target.is_file():
+                raise InputError(path, f"base: {base} is not a shipped config")
+        else:
+            target = path.parent / target
+            if not target.is_file():
+                raise InputError(path, f"base: {base} not found (read relative to this file)")
+        parent = _load(target, cls, (*chain, path.resolve()))
+    try:
+        return build_dataclass(cls, values, str(path), base=parent)
+    except InputError as err:
+        if err.source is None:  # a settings class's own check: name the file
+            raise InputError(path, err.problem) from None
+        raise
+
+
+def _read_mapping(path: Path) -> dict[str, Any]:
+    """A settings file's top-level mapping; a one-line error naming the file otherwise."""
     try:
         values = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
     except yaml.YAMLError as err:
@@ -106,12 +143,7 @@ def load_config(path: str | Path | None, cls: type = OdometryConfig):
         raise InputError(path, f"cannot be read ({err.strerror})") from None
     if not isinstance(values, dict):
         raise InputError(path, "expected a mapping of settings at the top level")
-    try:
-        return build_dataclass(cls, values, str(path))
-    except InputError as err:
-        if err.source is None:  # a settings class's own check: name the file
-            raise InputError(path, err.problem) from None
-        raise
+    return values
 
 
 def config_dict(config) -> dict[str, Any]:

@@ -27,6 +27,12 @@ docs/config.md` (a test fails when this page is stale). Nested sections are writ
 `gloam config dump METHOD` writes one method's settings as commented YAML. A setting without
 a comment in the source has an empty meaning here: add one on its line.
 
+A file can start from another and state only what it changes: `base: gicp` (a shipped
+config's name) or `base: mine.yaml` (a path relative to the file) is loaded first, and the
+file's settings replace its values section by section (`configs/gloam.yaml` is `base: gicp`
+plus the method, the model and 5 candidates). A training run's `config.yaml` holds the resolved
+whole.
+
 Bad values are errors naming the file and the setting (a range band that keeps no point,
 a negative voxel size, fewer than 3 neighbours, ...). `preprocess.downsampling_resolution: 0`
 turns downsampling off; `preprocess.min_range: 0` keeps the closest returns.

@@ -199,6 +199,39 @@ def test_config_round_trip_and_errors(tmp_path):
         load_config(tmp_path / "bad3.yaml")
 
 
+def test_a_config_based_on_another_changes_only_what_it_states(tmp_path):
+    from gloam_jax.training.config import TrainConfig
+
+    gicp = load_config("gicp")
+    assert load_config("gicp_ce") == dataclasses.replace(gicp, method="gicp_ce", model="default")
+    assert load_config("gloam").gicp == dataclasses.replace(gicp.gicp, num_candidates=5)
+    assert load_config("gloam_net") == dataclasses.replace(load_config("gloam"), model="net")
+    protocol = load_config("train_protocol", TrainConfig)
+    assert load_config("train_protocol_net_finetune", TrainConfig) == dataclasses.replace(
+        protocol, backbone="net", grad=dataclasses.replace(protocol.grad, head_learning_rate=1e-3)
+    )
+    # a path relative to the file, one nested field replaced, the section's others kept
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "parent.yaml").write_text("mode: frame_to_frame\ngicp:\n  num_candidates: 3\n")
+    child = tmp_path / "sub" / "child.yaml"
+    child.write_text("base: ../parent.yaml\ngicp:\n  max_iterations: 7\n")
+    child = load_config(child)
+    assert child.mode == "frame_to_frame" and child.gicp == GICPConfig(
+        num_candidates=3, max_iterations=7
+    )
+    for text, message in [
+        ("base: nowhere.yaml\n", "child.yaml: base: nowhere.yaml not found"),
+        ("base: gicpp\n", "child.yaml: base: gicpp is not a shipped config"),
+        ("base: [gicp]\n", "child.yaml: base must name a shipped config or a YAML file"),
+        ("base: child.yaml\n", "child.yaml: its base: settings lead back to itself"),
+        ("base: bad.yaml\n", "bad.yaml: unknown setting 'gicp.num_candidatez'"),
+    ]:
+        (tmp_path / "bad.yaml").write_text("gicp:\n  num_candidatez: 3\n")
+        (tmp_path / "child.yaml").write_text(text)
+        with pytest.raises(InputError, match=message):
+            load_config(tmp_path / "child.yaml")
+
+
 def test_old_config_keys_name_their_new_place(tmp_path):
     from gloam_jax.training.config import TrainConfig
 
