@@ -205,8 +205,8 @@ def _train(config, mode, data, out, trials, seed, steps, learning_rate, cache, s
     if "fallback" in info:
         chosen = (
             f"plain GICP ({cfg.objective} {info['selected_value']:.4g} on validation; the best "
-            f"learned weights, {info['fallback']['from_value']:.4g}, not {100 * cfg.min_gain:g} "
-            "% better), training t_err"
+            f"weights validated, the start included, {info['fallback']['from_value']:.4g}: not "
+            f"{100 * cfg.min_gain:g} % better), training t_err"
         )
     elif info["selected_on"] == "validation":
         chosen = (
