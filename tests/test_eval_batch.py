@@ -1,0 +1,35 @@
+"""scripts/eval_batch.py: which weights a model argument loads, and what it refuses."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gloam_jax.config import dump_config, load_config
+from gloam_jax.models import load_model, shipped_model_path
+from gloam_jax.training.config import TrainConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+spec = importlib.util.spec_from_file_location("eval_batch", ROOT / "scripts/eval_batch.py")
+eval_batch = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(eval_batch)
+
+
+def test_a_model_file_loads_as_itself():
+    loaded = eval_batch._load(shipped_model_path())
+    np.testing.assert_array_equal(
+        loaded.pca.components, load_model(shipped_model_path()).pca.components
+    )
+
+
+def test_a_fine_tuning_runs_checkpoint_is_refused_in_one_line(tmp_path):
+    # Its MLPs fit the fine-tuned layer's features; scored on the frozen ones they would mislead.
+    config = load_config("train_protocol_net_finetune", TrainConfig)
+    dump_config(config, tmp_path / "config.yaml")
+    (tmp_path / "checkpoint.npz").write_bytes(b"")
+    with pytest.raises(SystemExit) as refused:
+        eval_batch._load(tmp_path / "checkpoint.npz")
+    message = str(refused.value)
+    assert "\n" not in message and "fine-tuning run's checkpoint" in message
+    assert "model.npz" in message and str(tmp_path / "checkpoint.npz") in message
