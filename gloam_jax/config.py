@@ -78,15 +78,24 @@ def build_dataclass(cls, values: dict[str, Any], source: str, prefix: str = "", 
     return dataclasses.replace(base, **kwargs)
 
 
+def _is_name(text: str) -> bool:
+    """Whether ``text`` is a bare name (``gloam``), which stands for a shipped config."""
+    path = Path(text)
+    return path.suffix == "" and path.name == text
+
+
+def _shipped_names() -> str:
+    return ", ".join(sorted(p.stem for p in PACKAGED.glob("*.yaml")))
+
+
 def resolve_config(name_or_path: str | Path) -> Path:
     """A settings file: a path, or the name of one shipped with the package (``gloam``)."""
     path = Path(name_or_path)
-    if not path.exists() and path.suffix == "" and path.name == str(name_or_path):
+    if not path.exists() and _is_name(str(name_or_path)):
         packaged = PACKAGED / f"{path.name}.yaml"
         if packaged.is_file():
             return packaged
-        names = sorted(p.stem for p in PACKAGED.glob("*.yaml"))
-        raise InputError(path, f"no such file, nor a shipped config (one of {', '.join(names)})")
+        raise InputError(path, f"no such file, nor a shipped config (one of {_shipped_names()})")
     if not path.exists():
         raise InputError(path, "file not found")
     return path
@@ -111,13 +120,14 @@ def _load(path: Path, cls: type, chain: tuple[Path, ...]):
         base = values.pop("base")
         if not isinstance(base, str) or not base:
             raise InputError(path, f"base must name a shipped config or a YAML file, not {base!r}")
-        target = Path(base)
-        if target.suffix == "" and target.name == base:  # a shipped config's name
+        if _is_name(base):
             target = PACKAGED / f"{base}.yaml"
             if not target.is_file():
-                raise InputError(path, f"base: {base} is not a shipped config")
+                raise InputError(
+                    path, f"base: {base} is not a shipped config (one of {_shipped_names()})"
+                )
         else:
-            target = path.parent / target
+            target = path.parent / base
             if not target.is_file():
                 raise InputError(path, f"base: {base} not found (read relative to this file)")
         parent = _load(target, cls, (*chain, path.resolve()))

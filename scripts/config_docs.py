@@ -30,8 +30,8 @@ a comment in the source has an empty meaning here: add one on its line.
 A file can start from another and state only what it changes: `base: gicp` (a shipped
 config's name) or `base: mine.yaml` (a path relative to the file) is loaded first, and the
 file's settings replace its values section by section (`configs/gloam.yaml` is `base: gicp`
-plus the method, the model and 5 candidates). A training run's `config.yaml` holds the resolved
-whole.
+plus the method, the model and 5 candidates). The `config.yaml` that `gloam run` and `gloam
+train` write in their run folders holds the resolved whole.
 
 Bad values are errors naming the file and the setting (a range band that keeps no point,
 a negative voxel size, fewer than 3 neighbours, ...). `preprocess.downsampling_resolution: 0`

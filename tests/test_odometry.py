@@ -219,6 +219,7 @@ def test_a_config_based_on_another_changes_only_what_it_states(tmp_path):
     assert child.mode == "frame_to_frame" and child.gicp == GICPConfig(
         num_candidates=3, max_iterations=7
     )
+    (tmp_path / "bad.yaml").write_text("gicp:\n  num_candidatez: 3\n")
     for text, message in [
         ("base: nowhere.yaml\n", "child.yaml: base: nowhere.yaml not found"),
         ("base: gicpp\n", "child.yaml: base: gicpp is not a shipped config"),
@@ -226,7 +227,6 @@ def test_a_config_based_on_another_changes_only_what_it_states(tmp_path):
         ("base: child.yaml\n", "child.yaml: its base: settings lead back to itself"),
         ("base: bad.yaml\n", "bad.yaml: unknown setting 'gicp.num_candidatez'"),
     ]:
-        (tmp_path / "bad.yaml").write_text("gicp:\n  num_candidatez: 3\n")
         (tmp_path / "child.yaml").write_text(text)
         with pytest.raises(InputError, match=message):
             load_config(tmp_path / "child.yaml")
