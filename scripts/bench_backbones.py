@@ -18,6 +18,7 @@ import platform
 import sys
 import time
 
+import jax
 import numpy as np
 from make_tables import commit
 
@@ -61,6 +62,7 @@ def main() -> None:
             "command": "python " + " ".join(sys.argv),
             "commit": commit(),
             "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+            "jax_device": jax.devices()[0].device_kind,
             "scans": args.scans,
             "mean_points": float(np.mean(points[1:])),
             "backbones": rows,

@@ -35,6 +35,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import os
 import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
@@ -84,8 +85,11 @@ def fmt(x: float) -> str:
 
 
 def commit() -> str:
-    """The checkout's short commit, marked when code differs from it."""
+    """The checkout's short commit, marked when code differs from it; $GLOAM_COMMIT in a
+    copied tree without git (as on a lent GPU machine)."""
     head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    if head.returncode and os.environ.get("GLOAM_COMMIT"):
+        return os.environ["GLOAM_COMMIT"]
     dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "scripts", "gloam_jax"])
     return head.stdout.strip() + (" (+ uncommitted changes)" if dirty.returncode else "")
 
