@@ -1,4 +1,5 @@
-"""The ``gloam`` command line: simulate, run, eval, demo, init-model, train, train-backbone."""
+"""The ``gloam`` command line: simulate, run, eval, demo, init-model, train, train-backbone,
+segment."""
 
 from __future__ import annotations
 

@@ -1,13 +1,23 @@
-"""``gloam train-backbone``: the ``net`` backbone's segmentation network, on labelled scans."""
+"""``gloam train-backbone`` and ``gloam segment``: the ``net`` backbone's segmentation network,
+trained on labelled scans, and its classes for any scans."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from gloam_jax.cli.common import Tasks, app, console, progress_bar, user_errors
+from gloam_jax.cli.common import (
+    Tasks,
+    app,
+    console,
+    frame_progress,
+    progress_bar,
+    user_errors,
+    write_json,
+)
 
 
 def _ids(text: str) -> tuple[str, ...]:
@@ -62,3 +72,72 @@ def train_backbone(
         f"({provenance['steps']} steps, {provenance['wall_s']:.0f} s); weights: {out / WEIGHTS}, "
         f"curve: {out / 'curve.png'}"
     )
+
+
+@app.command(
+    epilog=(
+        "Examples:\n\n"
+        "  gloam segment ../shared/data/real_kitti16 --out results/segment --preview\n\n"
+        "  gloam segment data/sim --sequence 00 --frames 10 --weights runs/net/net.npz"
+    ),
+)
+@user_errors
+def segment(
+    data: Annotated[
+        Path, typer.Argument(help="KITTI root (sequences/, poses/) or a folder of scans.")
+    ],
+    sequence: Annotated[
+        str | None, typer.Option(help="KITTI sequence id, e.g. 00 (needed when several).")
+    ] = None,
+    start: Annotated[int, typer.Option(min=0, help="First scan (index).")] = 0,
+    frames: Annotated[int | None, typer.Option(min=1, help="At most N scans.")] = None,
+    stride: Annotated[int, typer.Option(min=1, help="Every k-th scan.")] = 1,
+    out: Annotated[Path, typer.Option(help="Folder for labels/, preview/, segment.json.")] = Path(
+        "results/segment"
+    ),
+    weights: Annotated[
+        str, typer.Option(help="The network: 'default' (shipped) or a train-backbone file.")
+    ] = "default",
+    preview: Annotated[
+        bool, typer.Option(help="Also a bird's-eye PNG per scan, coloured by class.")
+    ] = False,
+) -> None:
+    """Label every point with the net backbone's classes: SemanticKITTI ``.label`` files per
+    scan (class id in the low 16 bits) and the share of points per class in segment.json."""
+    import numpy as np
+
+    from gloam_jax.datasets import open_dataset
+    from gloam_jax.features import NetBackbone
+    from gloam_jax.io import write_labels
+    from gloam_jax.pipeline import select_frames
+    from gloam_jax.simulate.preview import render_scan_classes
+    from gloam_jax.simulate.world import CLASS_NAMES
+
+    dataset = open_dataset(data, sequence)
+    chosen = select_frames(len(dataset), start, frames, stride)
+    dataset.check(chosen)
+    backbone = NetBackbone(weights)
+    counts: dict[int, int] = {}
+    with frame_progress(f"segment {dataset.name}", len(chosen)) as step:
+        for k, i in enumerate(chosen):
+            t0 = time.perf_counter()
+            path = dataset.scan_path(i)
+            scan, _ = dataset.frame(i)
+            labels = backbone.segment(scan, path)
+            write_labels(out / "labels" / f"{path.stem}.label", labels)
+            if preview:
+                (out / "preview").mkdir(parents=True, exist_ok=True)
+                title = f"{path.name}: {len(scan)} points, classes of the net backbone"
+                render_scan_classes(scan, labels, out / "preview" / f"{path.stem}.png", title)
+            for c, n in zip(*np.unique(labels, return_counts=True), strict=True):
+                counts[int(c)] = counts.get(int(c), 0) + int(n)
+            step(k, 1e3 * (time.perf_counter() - t0))
+    total = sum(counts.values())
+    shares = {CLASS_NAMES[k]: n / total for k, n in sorted(counts.items(), key=lambda x: -x[1])}
+    write_json(out / "segment.json", {
+        "data": str(data), "sequence": dataset.name, "frames": list(chosen), "points": total,
+        "weights": weights, "net_data": backbone.provenance.get("data"), "share": shares,
+    })  # fmt: skip
+    for name, share in shares.items():
+        console.print(f"  {name:16s} {100 * share:5.1f} % of points")
+    console.print(f"{len(chosen)} scans, {total} points; labels and summary: {out}")

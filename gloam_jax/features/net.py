@@ -363,3 +363,11 @@ class NetBackbone:
         """Features (N, embed) float32 of a raw scan (N, 3+) ``x y z [intensity]``."""
         scan = pc.check_points(scan, path)
         return run_scan(self.net, scan)[0]
+
+    def segment(self, scan: np.ndarray, path: str | os.PathLike[str] | None = None) -> np.ndarray:
+        """SemanticKITTI class ids (N,) uint16 of a raw scan (N, 3+): the network's most likely
+        class per point; 0 (unlabeled) where a coordinate is not finite."""
+        scan = pc.check_points(scan, path)
+        logits = run_scan(self.net, scan)[1]
+        ids = np.asarray(_KITTI_IDS, np.uint16)[np.argmax(logits, axis=1)]
+        return np.where(np.isfinite(scan[:, :3]).all(axis=1), ids, np.uint16(0))

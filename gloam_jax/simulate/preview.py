@@ -85,6 +85,27 @@ def deskewed_points(seq: KittiSequence, i: int, T_world_lidar: np.ndarray) -> np
     return np.einsum("nij,nj->ni", T_pts[:, :3, :3], pts) + T_pts[:, :3, 3]
 
 
+def render_scan_classes(
+    points: np.ndarray, labels: np.ndarray | None, path: Path, title: str
+) -> Path:
+    """Bird's-eye PNG of one scan (N, 3+) within 60 m, coloured by SemanticKITTI class (N,)
+    (grey without labels). Returns ``path``."""
+    fig = _figure()
+    ax = fig.add_subplot(1, 1, 1)
+    lab = labels if labels is not None else np.zeros(len(points), np.uint16)
+    order = np.argsort(points[:, 2])  # draw high points last: walls over ground
+    ax.scatter(points[order, 0], points[order, 1], s=0.15, c=_colours(lab[order]), linewidths=0)
+    ax.set_aspect("equal")
+    ax.set_xlim(-60, 60)
+    ax.set_ylim(-60, 60)
+    ax.set_xlabel("x (m, forward)")
+    ax.set_ylabel("y (m, left)")
+    ax.set_title(title)
+    _legend(ax, lab)
+    _save(fig, path)
+    return path
+
+
 def render_previews(
     seq: KittiSequence,
     out_dir: str | Path,
@@ -99,24 +120,9 @@ def render_previews(
     T = seq.gt_poses_lidar
     if T is None:
         raise ValueError(f"{seq.root}: preview needs ground-truth poses")
-    labels = seq.labels(frame)
     pts = seq.scan(frame)
-    paths = []
-
-    fig = _figure()
-    ax = fig.add_subplot(1, 1, 1)
-    lab = labels if labels is not None else np.zeros(len(pts), np.uint16)
-    order = np.argsort(pts[:, 2])  # draw high points last: walls over ground
-    ax.scatter(pts[order, 0], pts[order, 1], s=0.15, c=_colours(lab[order]), linewidths=0)
-    ax.set_aspect("equal")
-    ax.set_xlim(-60, 60)
-    ax.set_ylim(-60, 60)
-    ax.set_xlabel("x (m, forward)")
-    ax.set_ylabel("y (m, left)")
-    ax.set_title(f"scan {frame}: {len(pts)} points, coloured by class")
-    _legend(ax, lab)
-    paths.append(out_dir / "scan_classes.png")
-    _save(fig, paths[-1])
+    title = f"scan {frame}: {len(pts)} points, coloured by class"
+    paths = [render_scan_classes(pts, seq.labels(frame), out_dir / "scan_classes.png", title)]
 
     n = min(len(seq), map_frames)
     rng = np.random.default_rng(0)
