@@ -159,8 +159,15 @@ def make_step(optimizer: optax.GradientTransformation):
     return step
 
 
-def evaluate(net: SegNet, root: str, sequences: tuple[str, ...], every: int = 1) -> dict[str, Any]:
-    """Per-class IoU and mIoU on the raw points of every ``every``-th scan of ``sequences``;
+def evaluate(
+    net: SegNet,
+    root: str,
+    sequences: tuple[str, ...],
+    every: int = 1,
+    transform: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> dict[str, Any]:
+    """Per-class IoU and mIoU on the raw points of every ``every``-th scan of ``sequences``
+    (each passed through ``transform`` first, when given: row-aligned, (N, 4) -> (N, 4));
     the mean is over the classes with ground-truth points."""
     c = len(CLASSES)
     confusion = np.zeros((c, c), np.int64)
@@ -169,7 +176,8 @@ def evaluate(net: SegNet, root: str, sequences: tuple[str, ...], every: int = 1)
         seq = _sequence(root, name)
         for i in range(0, len(seq), every):
             truth = class_index(seq.labels(i))
-            pred = run_scan(net, seq.scan(i))[1].argmax(axis=1)
+            scan = seq.scan(i) if transform is None else transform(seq.scan(i))
+            pred = run_scan(net, scan)[1].argmax(axis=1)
             ok = truth >= 0
             confusion += np.bincount(truth[ok] * c + pred[ok], minlength=c * c).reshape(c, c)
             scans += 1
