@@ -76,6 +76,20 @@ def test_backbone_shapes_rows_and_permutation_invariance(weights):
         backbone(scan[:, :2])
 
 
+def test_a_geometry_only_network_ignores_intensity(tmp_path):
+    scan, _ = toy_scan()
+    relit = scan.copy()
+    relit[:, 3] = np.random.default_rng(5).uniform(0, 100, len(scan))  # another sensor's scale
+    for intensity in (True, False):
+        path = tmp_path / f"net_{intensity}.npz"
+        config = NetConfig(k=8, intensity=intensity)
+        save_net(path, SegNet(config, key=jax.random.key(1)), {"note": "untrained"})
+        backbone = get_backbone("net", weights=str(path))
+        assert backbone.net.config == config  # the flag survives the file
+        same = np.allclose(backbone(scan), backbone(relit), atol=1e-6)
+        assert same != intensity
+
+
 def test_training_step_overfits_a_tiny_set():
     scan, labels = toy_scan()
     from gloam_jax.features.net import voxelize

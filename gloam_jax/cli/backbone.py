@@ -54,13 +54,18 @@ def train_backbone(
         int, typer.Option(min=1, help="During training, score every N-th held-out scan.")
     ] = 2,
     seed: Annotated[int, typer.Option(help="Initialisation and crop seed.")] = 0,
+    intensity: Annotated[
+        bool, typer.Option(help="Feed intensity (--no-intensity: geometry only, other sensors).")
+    ] = True,
 ) -> None:
     """Train the segmentation network whose per-point embedding is the ``net`` backbone."""
+    from gloam_jax.features.net import NetConfig
     from gloam_jax.training.segmentation import WEIGHTS, SegmentationConfig, train_segmentation
 
     cfg = SegmentationConfig(
         data=str(data), train=_ids(train), test=_ids(test), steps=steps, batch=batch, crop=crop,
         learning_rate=learning_rate, eval_every=eval_every, test_every=test_every, seed=seed,
+        net=NetConfig(intensity=intensity),
     )  # fmt: skip
     with progress_bar() as bar:
         _, provenance = train_segmentation(cfg, out, Tasks(bar))

@@ -12,11 +12,11 @@ One scan, on the host (NumPy and scipy's k-d tree), then one jitted call:
    level-1 k-NN graph and each voxel's nearest level-1 point;
 3. both levels padded to size buckets (padded rows only ever read themselves, so no mask is
    needed inside the network);
-4. the network: per-voxel inputs (range / 50 m, z / 3 m, intensity) -> dense; local
-   aggregation (local spatial encoding of relative positions + attentive pooling) at level
-   0; max-pooling onto level 1 over each sampled voxel's level-0 neighbours; local
-   aggregation at level 1; nearest-neighbour upsampling, concatenated with the level-0
-   features -> dense + ReLU: the embedding (M, ``embed``); -> dense: class logits.
+4. the network: per-voxel inputs (range / 50 m, z / 3 m and, unless ``intensity`` is off,
+   intensity) -> dense; local aggregation (local spatial encoding of relative positions +
+   attentive pooling) at level 0; max-pooling onto level 1 over each sampled voxel's level-0
+   neighbours; local aggregation at level 1; nearest-neighbour upsampling, concatenated with
+   the level-0 features -> dense + ReLU: the embedding (M, ``embed``); -> dense: class logits.
 
 Each raw point gets its voxel's embedding, so the features are row-aligned with the scan.
 """
@@ -73,6 +73,10 @@ class NetConfig:
     widths: tuple[int, int, int] = (8, 32, 64)  # stem, level 0, level 1
     embed: int = 32
     num_classes: int = len(CLASSES)
+    # Feed each voxel's mean intensity. Off: geometry only (range, height, neighbourhoods), for
+    # data whose intensity scale or model differs from the training scans' (other sensors, real
+    # scans, other simulators): docs/backbone.md, "Intensity".
+    intensity: bool = True
 
 
 class NetInputs(NamedTuple):
@@ -144,7 +148,7 @@ class SegNet(eqx.Module):
         k = jax.random.split(key, 5)
         w0, w1, w2 = config.widths
         self.config = config
-        self.stem = Dense(3, w0, key=k[0])
+        self.stem = Dense(3 if config.intensity else 2, w0, key=k[0])
         self.local0 = LocalAggregation(w0, w1, key=k[1])
         self.local1 = LocalAggregation(w1, w2, key=k[2])
         self.decode = Dense(w1 + w2, config.embed, key=k[3])
@@ -221,9 +225,8 @@ def build_inputs(
     tree1 = cKDTree(xyz[sub])
     nbr1 = _knn(tree1, xyz[sub], config.k)
     up = _knn(tree1, xyz, 1)[:, 0]
-    features = np.stack(
-        [np.linalg.norm(xyz, axis=1) / _RANGE_SCALE, xyz[:, 2] / _HEIGHT_SCALE, intensity], 1
-    )
+    columns = [np.linalg.norm(xyz, axis=1) / _RANGE_SCALE, xyz[:, 2] / _HEIGHT_SCALE]
+    features = np.stack(columns + [intensity] if config.intensity else columns, 1)
     n1 = -(-size // config.ratio)
     # Padded rows point at themselves, so real rows never read them.
     pad0 = np.arange(m, size, dtype=np.int32)
