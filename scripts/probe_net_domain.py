@@ -3,7 +3,7 @@
     python scripts/probe_net_domain.py --sim data/netodo --sequences 00,02,04 --every 6 \
         --real ../shared/data/real_kitti16 --out docs/net_domain.json
 
-On labelled simulated scans (worlds the network never saw) it scores the shipped network's
+On labelled simulated scans (worlds the network never saw) it scores the network's
 mIoU and point accuracy with the intensity as simulated, set to zero, and mapped quantile by
 quantile onto the real scans' intensity distribution. On the real scans (no labels) it gives
 the share of points per class as they are and with their intensity mapped onto the simulated
@@ -73,10 +73,11 @@ def main() -> None:
     parser.add_argument("--sequences", default="00,02,04")
     parser.add_argument("--every", type=int, default=6)
     parser.add_argument("--real", type=Path, required=True, help="real scans (any dataset)")
+    parser.add_argument("--weights", default="default", help="the network (train-backbone file)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
 
-    backbone = NetBackbone()
+    backbone = NetBackbone(args.weights)
     names = tuple(args.sequences.split(","))
     seqs = [KittiSequence(args.sim, s) for s in names]
     frames = {s.sequence: range(0, len(s), args.every) for s in seqs}
@@ -106,6 +107,7 @@ def main() -> None:
     record = {
         "command": "python " + " ".join(sys.argv),
         "commit": commit(),
+        "weights": args.weights,
         "sim": {
             "root": str(args.sim),
             "sequences": names,

@@ -52,7 +52,12 @@ _LABEL_LUT[list(_KITTI_IDS)] = np.arange(len(_KITTI_IDS))
 _LABEL_LUT[list(_MOVING)] = [_KITTI_IDS.index(v) for v in _MOVING.values()]
 
 NET_FORMAT = "gloam-jax-net"
-SHIPPED_NET = Path(__file__).resolve().parent.parent / "data" / "net_default.npz"
+# The shipped networks by name (gloam_jax/data/): "default" reads intensity, "no-intensity"
+# is geometry only (docs/backbone.md, "Intensity").
+SHIPPED_NETS = {
+    name: Path(__file__).resolve().parent.parent / "data" / file
+    for name, file in (("default", "net_default.npz"), ("no-intensity", "net_no_intensity.npz"))
+}
 _RANGE_SCALE = 50.0  # m
 _HEIGHT_SCALE = 3.0  # m
 
@@ -338,15 +343,15 @@ def load_net(path: str | os.PathLike[str]) -> tuple[SegNet, dict[str, Any]]:
 class NetBackbone:
     """Per-point embeddings of a trained :class:`SegNet`: raw scan (N, 3+) -> (N, embed).
 
-    ``weights``: a file from ``gloam train-backbone``, or ``"default"``, the network shipped
-    in ``gloam_jax/data/net_default.npz``.
+    ``weights``: a file from ``gloam train-backbone``, or the name of a shipped network:
+    ``"default"`` (``gloam_jax/data/net_default.npz``) or ``"no-intensity"`` (geometry only).
     """
 
     name = "net"
 
     def __init__(self, weights: str | os.PathLike[str] = "default") -> None:
         self.weights = str(weights)
-        self.net, self.provenance = load_net(SHIPPED_NET if self.weights == "default" else weights)
+        self.net, self.provenance = load_net(SHIPPED_NETS.get(self.weights, weights))
 
     @property
     def dim(self) -> int:

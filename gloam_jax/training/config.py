@@ -84,6 +84,8 @@ class TrainConfig:
     init: Literal["random", "gicp"] = "gicp"  # without init_model: how the MLPs start
     # Without init_model: the feature backbone whose PCA is fitted (net: the shipped weights).
     backbone: Literal["geometric", "net"] = "geometric"
+    # net: a shipped network's name ("default", "no-intensity") or a train-backbone file.
+    backbone_weights: str = "default"
     pca_every: int = 25  # without init_model: fit the PCA on every N-th training scan
     seed: int = 0  # of the start model, TPE's sampler and the point subsets
     # What is minimised and selected on (gloam_jax.training.objective): "t_err", the windows'
@@ -112,6 +114,9 @@ class TrainConfig:
     MOVED: ClassVar[dict[str, str]] = {"odometry": "preprocess"}
 
     def __post_init__(self) -> None:
+        if self.backbone_weights != "default" and self.backbone != "net":
+            raise InputError(None, "backbone_weights chooses the net backbone's network; "
+                             f"this run's backbone is '{self.backbone}'")  # fmt: skip
         if self.worse_penalty < 0:
             raise InputError(None, f"worse_penalty must be >= 0, not {self.worse_penalty}")
         if not 0 <= self.min_gain < 1:

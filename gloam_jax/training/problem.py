@@ -254,7 +254,8 @@ def setup(
         model = load_model(config.init_model)
         save_model(start, model)
     else:
-        extractor = get_backbone(config.backbone)
+        options = {"weights": config.backbone_weights} if config.backbone == "net" else {}
+        extractor = get_backbone(config.backbone, **options)
         model = fit_initial_model(
             config.training_roots,
             config.sequences,
