@@ -216,6 +216,16 @@ def test_shipped_network_loads_and_says_how_it_was_trained():
     model = load_model(load_config("gloam_net").model)
     assert model.backbone_name == "net" and model.backbone().dim == model.pca.input_dim
     assert model.provenance["mode"] == "grad" and model.provenance["steps"] > 0
+    # The geometry-only network, by name; a training run picks it with backbone_weights.
+    blind = get_backbone("net", weights="no-intensity")
+    assert not blind.net.config.intensity and blind.provenance["test"]["miou"] > 0.5
+    assert backbone.net.config.intensity
+    from gloam_jax.training.config import TrainConfig
+
+    picked = load_config("train_protocol_net_noint_finetune", TrainConfig)
+    assert (picked.backbone, picked.backbone_weights) == ("net", "no-intensity")
+    with pytest.raises(InputError, match="backbone_weights chooses the net"):
+        TrainConfig(backbone_weights="no-intensity")
 
 
 def test_segment_labels_scans_as_semantickitti_files(sim_sequence, tmp_path):

@@ -82,7 +82,7 @@ class TrainConfig:
     frames: int | None = None  # first N scans of each sequence (None: all)
     init_model: str | None = None  # start from this model file (its PCA and MLPs)
     init: Literal["random", "gicp"] = "gicp"  # without init_model: how the MLPs start
-    # Without init_model: the feature backbone whose PCA is fitted (net: the shipped weights).
+    # Without init_model: the feature backbone whose PCA is fitted (net: backbone_weights).
     backbone: Literal["geometric", "net"] = "geometric"
     # net: a shipped network's name ("default", "no-intensity") or a train-backbone file.
     backbone_weights: str = "default"
