@@ -132,7 +132,7 @@ def segment(
             write_labels(out / "labels" / f"{path.stem}.label", labels)
             if preview:
                 (out / "preview").mkdir(parents=True, exist_ok=True)
-                title = f"{path.name}: {len(scan)} points, classes of the net backbone"
+                title = f"{path.name}: {len(scan)} points, classes of the net ({weights})"
                 render_scan_classes(scan, labels, out / "preview" / f"{path.stem}.png", title)
             for c, n in zip(*np.unique(labels, return_counts=True), strict=True):
                 counts[int(c)] = counts.get(int(c), 0) + int(n)
