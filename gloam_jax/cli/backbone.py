@@ -10,6 +10,10 @@ from typing import Annotated
 import typer
 
 from gloam_jax.cli.common import (
+    DataArg,
+    SequenceOpt,
+    StartOpt,
+    StrideOpt,
     Tasks,
     app,
     console,
@@ -88,20 +92,16 @@ def train_backbone(
 )
 @user_errors
 def segment(
-    data: Annotated[
-        Path, typer.Argument(help="KITTI root (sequences/, poses/) or a folder of scans.")
-    ],
-    sequence: Annotated[
-        str | None, typer.Option(help="KITTI sequence id, e.g. 00 (needed when several).")
-    ] = None,
-    start: Annotated[int, typer.Option(min=0, help="First scan (index).")] = 0,
+    data: DataArg,
+    sequence: SequenceOpt = None,
+    start: StartOpt = 0,
     frames: Annotated[int | None, typer.Option(min=1, help="At most N scans.")] = None,
-    stride: Annotated[int, typer.Option(min=1, help="Every k-th scan.")] = 1,
+    stride: StrideOpt = 1,
     out: Annotated[Path, typer.Option(help="Folder for labels/, preview/, segment.json.")] = Path(
         "results/segment"
     ),
     weights: Annotated[
-        str, typer.Option(help="The network: 'default' (shipped) or a train-backbone file.")
+        str, typer.Option(help="Shipped network (default, no-intensity) or a train-backbone file.")
     ] = "default",
     preview: Annotated[
         bool, typer.Option(help="Also a bird's-eye PNG per scan, coloured by class.")

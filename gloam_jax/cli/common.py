@@ -114,6 +114,17 @@ def frame_progress(description: str, total: int, every: int | None = None) -> It
     yield line
 
 
+# The scans a command reads, as `gloam run` and `gloam segment` take them.
+DataArg = Annotated[
+    Path, typer.Argument(help="KITTI root (sequences/, poses/) or a folder of scans.")
+]
+SequenceOpt = Annotated[
+    str | None, typer.Option(help="KITTI sequence id, e.g. 00 (needed when several).")
+]
+StartOpt = Annotated[int, typer.Option(min=0, help="First scan (index).")]
+StrideOpt = Annotated[int, typer.Option(min=1, help="Every k-th scan.")]
+
+
 COMPILATION_CACHE_ENV = "GLOAM_COMPILATION_CACHE"
 CACHE_HELP = (
     "JAX's persistent compilation cache (in the user cache folder): a second run compiles "

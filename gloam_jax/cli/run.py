@@ -11,6 +11,10 @@ from rich.table import Table
 from gloam_jax import __version__
 from gloam_jax.cli.common import (
     CACHE_HELP,
+    DataArg,
+    SequenceOpt,
+    StartOpt,
+    StrideOpt,
     app,
     cache_dir,
     console,
@@ -150,12 +154,8 @@ def method_settings(config: Path | None, method: str | None, weights: Path | Non
 )
 @user_errors
 def run(
-    data: Annotated[
-        Path, typer.Argument(help="KITTI root (sequences/, poses/) or a folder of scans.")
-    ],
-    sequence: Annotated[
-        str | None, typer.Option(help="KITTI sequence id, e.g. 00 (needed when several).")
-    ] = None,
+    data: DataArg,
+    sequence: SequenceOpt = None,
     method: Annotated[
         str | None,
         typer.Option(help="gicp, gicp_da, gicp_ce or gloam: the shipped settings of that method."),
@@ -164,9 +164,9 @@ def run(
         Path | None,
         typer.Option(help="YAML settings: a file, or a shipped config's name (gicp, gloam, ...)."),
     ] = None,
-    start: Annotated[int, typer.Option(min=0, help="First scan (index).")] = 0,
+    start: StartOpt = 0,
     frames: Annotated[int | None, typer.Option(min=2, help="At most N scans.")] = None,
-    stride: Annotated[int, typer.Option(min=1, help="Every k-th scan.")] = 1,
+    stride: StrideOpt = 1,
     out: Annotated[Path, typer.Option(help="Results root; a timestamped run inside.")] = Path(
         "results"
     ),
