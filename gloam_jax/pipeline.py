@@ -32,7 +32,7 @@ from gloam_jax import io, metrics
 from gloam_jax.config import dump_config
 from gloam_jax.datasets import Dataset, open_dataset
 from gloam_jax.errors import InputError
-from gloam_jax.features import Backbone, get_backbone
+from gloam_jax.features import Backbone, get_backbone, intensity_warning
 from gloam_jax.odometry import Odometry, OdometryConfig
 from gloam_jax.preprocess import ONE_INSTANT, detect_time_convention, resolve_deskew
 
@@ -120,9 +120,12 @@ def run_dataset(
     odometry = Odometry(resolved)
     backbone = _backbone(odometry, features_dir)
     times = dataset.times
-    frame_ms, feature_ms = [], []
+    frame_ms, feature_ms, warnings = [], [], []
     for k, i in enumerate(frames):
         scan, point_times = dataset.frame(i)
+        if k == 0 and backbone is not None:
+            warning = intensity_warning(backbone, odometry.model.pca, scan)
+            warnings += [] if warning is None else [warning]
         if deskew["used"] != "timestamps":
             point_times = None
         prev = frames[k - 1] if k > 0 else None
@@ -141,7 +144,8 @@ def run_dataset(
         if progress is not None:
             progress(k, frame_ms[-1])
     extra = {"deskew": deskew, "defaults": list(dataset.defaults), "dataset": dataset.kind,
-             "frames": {"start": frames.start, "stride": frames.step, "count": n}}  # fmt: skip
+             "frames": {"start": frames.start, "stride": frames.step, "count": n},
+             "warnings": warnings}  # fmt: skip
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
     return write_run(dataset, odometry, config, out_dir, frames, frame_ms, extra)

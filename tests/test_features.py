@@ -12,6 +12,7 @@ from gloam_jax.features import (
     PrecomputedBackbone,
     fit_pca,
     get_backbone,
+    intensity_warning,
 )
 from gloam_jax.features import geometric as geo_features
 
@@ -205,3 +206,32 @@ def test_pca_errors():
         fit_pca([np.zeros((10, 4)), np.zeros((10, 5))])
     with pytest.raises(InputError, match="at least 6 rows and columns"):
         fit_pca(np.random.default_rng(0).normal(size=(100, 4)))
+
+
+def test_a_scan_in_other_intensity_units_is_flagged(scan_features, tmp_path):
+    scan, _, backbone, features = scan_features  # intensity uniform in [0, 1]: mean 0.5
+    pca = fit_pca([features])
+    assert backbone.fitted_intensity(pca) == pytest.approx(0.5, abs=0.02)
+    assert intensity_warning(backbone, pca, scan) is None
+    counts = scan.copy()
+    counts[:, 3] *= 255  # the same scan, intensity in 0-255
+    assert "mean intensity is 128, but" in intensity_warning(backbone, pca, counts)
+    assert "carry no intensity" in intensity_warning(backbone, pca, scan[:, :3])
+    blind = GeometricBackbone(intensity_scale=0.0)
+    assert intensity_warning(blind, fit_pca([blind(scan)]), counts) is None
+    # The net's reference is its training points' mean, from its weight file.
+    assert get_backbone("net").fitted_intensity() == pytest.approx(0.193, abs=1e-3)
+    assert get_backbone("net", weights="no-intensity").fitted_intensity() is None
+
+    from typer.testing import CliRunner
+
+    from gloam_jax.cli import app
+
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    for i in range(2):  # the shipped model (geometric backbone) on scans in 0-255 units
+        np.save(folder / f"{i:06d}.npy", counts - np.float32([0.2 * i, 0, 0, 0]))
+    result = CliRunner().invoke(app, ["run", str(folder), "--method", "gloam", "--out",
+                                      str(tmp_path / "res"), "--no-compilation-cache"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert result.output.count("warning: the scans' mean intensity") == 1

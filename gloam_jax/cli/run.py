@@ -104,6 +104,8 @@ def run_odometry(
     with frame_progress(f"{config.method} {dataset.name}", len(chosen)) as step:
         result = run_dataset(dataset, config, run_dir, chosen, progress=step, features_dir=features)
     console.print(f"  {result['deskew']['reason']}")
+    for warning in result.get("warnings", []):
+        console.print(f"  warning: {warning}")
     if "per_length" in result:
         console.print(metrics_table(result, f"{dataset.name}: estimate vs ground truth"))
     elif "rte_unavailable" in result:

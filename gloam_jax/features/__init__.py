@@ -33,6 +33,7 @@ __all__ = [
     "PrecomputedBackbone",
     "fit_pca",
     "get_backbone",
+    "intensity_warning",
 ]
 
 
@@ -50,6 +51,29 @@ class Backbone(Protocol):
         path: str | os.PathLike[str] | None = None,
         frame: int | None = None,
     ) -> np.ndarray: ...
+
+
+# How far a scan's mean intensity may stray from the fitted one before a run says so: a
+# factor that catches other units (0-255, 0-65535 counts against 0-1), not subtler shifts.
+INTENSITY_FACTOR = 3.0
+
+
+def intensity_warning(backbone: Backbone, pca: FeaturePCA, scan: np.ndarray) -> str | None:
+    """One line when ``scan`` (N, 3+) has no intensity or a mean intensity more than
+    INTENSITY_FACTOR from the one ``backbone``'s learned features were fitted on; None
+    otherwise, and for backbones that read no intensity."""
+    fitted = getattr(backbone, "fitted_intensity", lambda _: None)(pca)
+    if fitted is None or not fitted > 0:
+        return None
+    where = f"the '{backbone.name}' features were fitted on a mean intensity of {fitted:.3g}"
+    if scan.shape[1] < 4:
+        return f"the scans carry no intensity, but {where}; the learned parts may not hold"
+    values = scan[:, 3][np.isfinite(scan[:, 3])]
+    mean = float(values.mean()) if len(values) else 0.0
+    if fitted / INTENSITY_FACTOR <= mean <= fitted * INTENSITY_FACTOR:
+        return None
+    return (f"the scans' mean intensity is {mean:.3g}, but {where} (other units?); the learned "
+            "parts may not hold")  # fmt: skip
 
 
 BACKBONES: dict[str, type] = {

@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
+from gloam_jax.features.pca import FeaturePCA
 
 EIGEN_FEATURES = (
     "linearity",
@@ -172,6 +173,13 @@ class GeometricBackbone:
     @property
     def dim(self) -> int:
         return len(self.feature_names)
+
+    def fitted_intensity(self, pca: FeaturePCA) -> float | None:
+        """The mean intensity (the scans' units) of the points ``pca`` was fitted on; None
+        when the features read no intensity."""
+        if self.intensity_scale == 0:
+            return None
+        return float(pca.mean[self.feature_names.index("intensity")]) / self.intensity_scale
 
     def options(self) -> dict[str, Any]:
         """Keyword arguments that rebuild this backbone (JSON-serialisable)."""

@@ -357,6 +357,11 @@ class NetBackbone:
     def dim(self) -> int:
         return self.net.config.embed
 
+    def fitted_intensity(self, pca: object = None) -> float | None:
+        """The mean intensity of the network's training points (its weight file's
+        provenance); None when it reads no intensity or the file does not say."""
+        return self.provenance.get("intensity_mean") if self.net.config.intensity else None
+
     def options(self) -> dict[str, Any]:
         """Keyword arguments that rebuild this backbone (JSON-serialisable)."""
         return {"weights": self.weights}
