@@ -1,22 +1,13 @@
 """scripts/bench_odometry.py: how a drive is scored, short or devkit-long."""
 
-import importlib
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+from repo_scripts import import_script
 
 
 @pytest.fixture(scope="module")
 def bench_odometry():
-    sys.path.insert(0, str(SCRIPTS))  # the script imports make_tables from beside it
-    try:
-        yield importlib.import_module("bench_odometry")
-    finally:
-        sys.path.remove(str(SCRIPTS))
+    return import_script("bench_odometry")
 
 
 def _straight(n: int, step_m: float) -> np.ndarray:
