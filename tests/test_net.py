@@ -232,14 +232,20 @@ def test_segment_labels_scans_as_semantickitti_files(sim_sequence, tmp_path):
     from gloam_jax.io import KittiSequence, read_labels
 
     out = tmp_path / "seg"
-    args = ["segment", str(sim_sequence), "--sequence", "00", "--start", "5", "--frames", "2",
+    args = ["segment", str(sim_sequence), "--sequence", "00", "--start", "0", "--frames", "2",
             "--stride", "20", "--out", str(out), "--preview"]  # fmt: skip
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     seq = KittiSequence(sim_sequence, "00")
     summary = json.loads((out / "segment.json").read_text())
-    assert summary["frames"] == [5, 25] and sum(summary["share"].values()) == pytest.approx(1.0)
-    for i in (5, 25):
+    assert summary["frames"] == [0, 20] and sum(summary["share"].values()) == pytest.approx(1.0)
+    # The drive has labels, so the classes are scored too: as the training's evaluate does.
+    from gloam_jax.training.segmentation import evaluate
+
+    scores = evaluate(get_backbone("net").net, str(sim_sequence), ("00",), every=20)
+    assert summary["scores"]["scans"] == 2 and "mIoU" in result.output
+    assert summary["scores"]["miou"] == pytest.approx(scores["miou"], abs=1e-9)
+    for i in (0, 20):
         predicted = read_labels(out / "labels" / f"{i:06d}.label")
         truth = class_index(seq.labels(i))
         assert predicted.shape == truth.shape and (out / "preview" / f"{i:06d}.png").is_file()

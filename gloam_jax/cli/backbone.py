@@ -108,21 +108,25 @@ def segment(
     ] = False,
 ) -> None:
     """Label every point with the net backbone's classes: SemanticKITTI ``.label`` files per
-    scan (class id in the low 16 bits) and the share of points per class in segment.json."""
+    scan (class id in the low 16 bits) and the share of points per class in segment.json;
+    where the data has labels (a KITTI root's labels/), also per-class IoU and mIoU."""
     import numpy as np
 
     from gloam_jax.datasets import open_dataset
     from gloam_jax.features import NetBackbone
+    from gloam_jax.features.net import CLASSES, class_index
     from gloam_jax.io import write_labels
     from gloam_jax.pipeline import select_frames
     from gloam_jax.simulate.preview import render_scan_classes
     from gloam_jax.simulate.world import CLASS_NAMES
+    from gloam_jax.training.segmentation import confusion_matrix, iou_scores
 
     dataset = open_dataset(data, sequence)
     chosen = select_frames(len(dataset), start, frames, stride)
     dataset.check(chosen)
     backbone = NetBackbone(weights)
     counts: dict[int, int] = {}
+    confusion, labelled = np.zeros((len(CLASSES), len(CLASSES)), np.int64), 0
     with frame_progress(f"segment {dataset.name}", len(chosen)) as step:
         for k, i in enumerate(chosen):
             t0 = time.perf_counter()
@@ -134,15 +138,27 @@ def segment(
                 (out / "preview").mkdir(parents=True, exist_ok=True)
                 title = f"{path.name}: {len(scan)} points, classes of the net ({weights})"
                 render_scan_classes(scan, labels, out / "preview" / f"{path.stem}.png", title)
+            truth = dataset.labels(i)
+            if truth is not None:
+                confusion += confusion_matrix(truth, class_index(labels))
+                labelled += 1
             for c, n in zip(*np.unique(labels, return_counts=True), strict=True):
                 counts[int(c)] = counts.get(int(c), 0) + int(n)
             step(k, 1e3 * (time.perf_counter() - t0))
     total = sum(counts.values())
     shares = {CLASS_NAMES[k]: n / total for k, n in sorted(counts.items(), key=lambda x: -x[1])}
-    write_json(out / "segment.json", {
+    summary = {
         "data": str(data), "sequence": dataset.name, "frames": list(chosen), "points": total,
         "weights": weights, "net_data": backbone.provenance.get("data"), "share": shares,
-    })  # fmt: skip
+    }  # fmt: skip
+    if labelled:
+        summary["scores"] = {**iou_scores(confusion), "scans": labelled}
+    write_json(out / "segment.json", summary)
     for name, share in shares.items():
-        console.print(f"  {name:16s} {100 * share:5.1f} % of points")
+        iou = summary.get("scores", {}).get("iou", {}).get(name)
+        scored = "" if iou is None else f", IoU {100 * iou:5.1f} %"
+        console.print(f"  {name:16s} {100 * share:5.1f} % of points{scored}")
+    if labelled:
+        miou = summary["scores"]["miou"]
+        console.print(f"mIoU {100 * miou:.1f} % over {labelled} labelled scans")
     console.print(f"{len(chosen)} scans, {total} points; labels and summary: {out}")

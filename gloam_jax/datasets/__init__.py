@@ -36,6 +36,10 @@ class Dataset:
         """Scan ``i`` ``(N, 4)`` float32 and its per-point times ``(N,)`` as stored, or None."""
         raise NotImplementedError
 
+    def labels(self, i: int) -> np.ndarray | None:
+        """Scan ``i``'s SemanticKITTI class ids ``(N,)``, or None where the data has none."""
+        return None
+
     @property
     def has_point_times(self) -> bool:
         raise NotImplementedError

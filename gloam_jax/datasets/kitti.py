@@ -57,6 +57,9 @@ class KittiDataset(Dataset):
     def frame(self, i: int) -> tuple[np.ndarray, np.ndarray | None]:
         return self.sequence.scan(i), self.sequence.point_times(i)
 
+    def labels(self, i: int) -> np.ndarray | None:
+        return self.sequence.labels(i)
+
     @property
     def has_point_times(self) -> bool:
         return self.sequence.has_point_times

@@ -175,18 +175,29 @@ def evaluate(
     for name in sequences:
         seq = _sequence(root, name)
         for i in range(0, len(seq), every):
-            truth = class_index(seq.labels(i))
             scan = seq.scan(i) if transform is None else transform(seq.scan(i))
-            pred = run_scan(net, scan)[1].argmax(axis=1)
-            ok = truth >= 0
-            confusion += np.bincount(truth[ok] * c + pred[ok], minlength=c * c).reshape(c, c)
+            confusion += confusion_matrix(seq.labels(i), run_scan(net, scan)[1].argmax(axis=1))
             scans += 1
+    return {**iou_scores(confusion), "scans": scans}
+
+
+def confusion_matrix(labels: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """(C, C) counts, truth by row, of SemanticKITTI ids ``labels`` (N,) against predicted
+    training classes (N,); unlabeled and unknown ids, and unpredicted rows (-1), left out."""
+    c = len(CLASSES)
+    truth = class_index(labels)
+    ok = (truth >= 0) & (predicted >= 0)
+    return np.bincount(truth[ok] * c + predicted[ok], minlength=c * c).reshape(c, c)
+
+
+def iou_scores(confusion: np.ndarray) -> dict[str, Any]:
+    """Per-class IoU and their mean over the classes with ground-truth points."""
     tp = np.diag(confusion).astype(np.float64)
     union = confusion.sum(0) + confusion.sum(1) - tp
-    present = confusion.sum(1) > 0
-    iou = {CLASSES[j]: float(tp[j] / union[j]) for j in range(c) if present[j]}
-    return {"miou": float(np.mean(list(iou.values()))), "iou": iou, "scans": scans,
-            "points": int(confusion.sum())}  # fmt: skip
+    present = np.flatnonzero(confusion.sum(1) > 0)
+    iou = {CLASSES[j]: float(tp[j] / union[j]) for j in present}
+    miou = float(np.mean(list(iou.values()))) if iou else float("nan")
+    return {"miou": miou, "iou": iou, "points": int(confusion.sum())}
 
 
 def plot_curve(history: list[dict[str, Any]], path: Path) -> None:
