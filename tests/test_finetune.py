@@ -22,7 +22,8 @@ GRAD = GradConfig(steps=2, eval_every=1, learning_rate=0.01, head_learning_rate=
 def net_start(sim_sequence, tmp_path_factory):
     """An untrained small network and a GICP start model on its features (PCA on 4 scans)."""
     folder = tmp_path_factory.mktemp("finetune")
-    save_net(folder / "net.npz", SegNet(NetConfig(k=8), key=jax.random.key(3)), {"note": "toy"})
+    toy = SegNet(NetConfig(k=8), key=jax.random.key(3))
+    save_net(folder / "net.npz", toy, {"note": "toy", "intensity_mean": 0.5})
     backbone = get_backbone("net", weights=str(folder / "net.npz"))
     model = fit_initial_model(sim_sequence, ["00"], backbone, every=10, init="gicp")
     save_model(folder / "start.npz", model)
@@ -59,6 +60,7 @@ def test_recomputed_features_are_the_backbones_and_training_exports_the_layer(
     net, provenance = load_net(run / "net.npz")
     before, _ = load_net(net_start.parent / "net.npz")
     assert provenance["layers"] == "decode" and provenance["steps"] == 2
+    assert provenance["intensity_mean"] == 0.5  # the inputs, so the run check, are the same
     assert not np.allclose(net.decode.weight, before.decode.weight)  # the layer moved
     np.testing.assert_array_equal(net.local1.out.weight, before.local1.out.weight)  # the rest not
     # The exported model names its network beside it; inference on its backbone gives the

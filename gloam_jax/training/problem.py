@@ -177,6 +177,7 @@ class Problem:
             save_net(path.parent / FINE_TUNED_NET, net, {
                 "fine_tuned_from": backbone.weights, "layers": "decode",
                 "through": "the odometry loss (gloam train, gradient mode)",
+                "intensity_mean": backbone.provenance.get("intensity_mean"),  # inputs unchanged
                 "backbone_provenance": backbone.provenance, **provenance})  # fmt: skip
             model = dataclasses.replace(model, backbone_options={"weights": FINE_TUNED_NET})
         save_model(path, model)
