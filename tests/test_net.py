@@ -76,7 +76,7 @@ def test_backbone_shapes_rows_and_permutation_invariance(weights):
         backbone(scan[:, :2])
 
 
-def test_a_geometry_only_network_ignores_intensity(tmp_path):
+def test_networks_blind_to_intensity_or_to_its_units(tmp_path):
     scan, _ = toy_scan()
     relit = scan.copy()
     relit[:, 3] = np.random.default_rng(5).uniform(0, 100, len(scan))  # another sensor's scale
@@ -88,6 +88,15 @@ def test_a_geometry_only_network_ignores_intensity(tmp_path):
         assert backbone.net.config == config  # the flag survives the file
         same = np.allclose(backbone(scan), backbone(relit), atol=1e-6)
         assert same != intensity
+    # Intensity as its rank in the scan: blind to units, gain and offset, not to another order.
+    path = tmp_path / "net_rank.npz"
+    save_net(path, SegNet(NetConfig(k=8, intensity_rank=True), key=jax.random.key(1)), {})
+    backbone = get_backbone("net", weights=str(path))
+    recalibrated = scan.copy()
+    recalibrated[:, 3] = 255 * scan[:, 3] + 3  # other units and offset
+    np.testing.assert_allclose(backbone(recalibrated), backbone(scan), atol=1e-6)
+    assert not np.allclose(backbone(relit), backbone(scan), atol=1e-6)  # another order
+    assert backbone.fitted_intensity() is None  # nothing for a run to check
 
 
 def test_training_step_overfits_a_tiny_set():
@@ -219,6 +228,8 @@ def test_shipped_network_loads_and_says_how_it_was_trained():
     # The geometry-only network, by name; a training run picks it with backbone_weights.
     blind = get_backbone("net", weights="no-intensity")
     assert not blind.net.config.intensity and blind.provenance["test"]["miou"] > 0.5
+    ranked = get_backbone("net", weights="intensity-rank")
+    assert ranked.net.config.intensity_rank and ranked.provenance["test"]["miou"] > 0.6
     assert backbone.net.config.intensity
     from gloam_jax.training.config import TrainConfig
 

@@ -61,6 +61,9 @@ def train_backbone(
     intensity: Annotated[
         bool, typer.Option(help="Feed intensity (--no-intensity: geometry only, other sensors).")
     ] = True,
+    intensity_rank: Annotated[
+        bool, typer.Option(help="Feed intensity as its rank in the scan (blind to its units).")
+    ] = False,
 ) -> None:
     """Train the segmentation network whose per-point embedding is the ``net`` backbone."""
     from gloam_jax.features.net import NetConfig
@@ -69,7 +72,7 @@ def train_backbone(
     cfg = SegmentationConfig(
         data=str(data), train=_ids(train), test=_ids(test), steps=steps, batch=batch, crop=crop,
         learning_rate=learning_rate, eval_every=eval_every, test_every=test_every, seed=seed,
-        net=NetConfig(intensity=intensity),
+        net=NetConfig(intensity=intensity, intensity_rank=intensity_rank),
     )  # fmt: skip
     with progress_bar() as bar:
         _, provenance = train_segmentation(cfg, out, Tasks(bar))
@@ -101,7 +104,7 @@ def segment(
         "results/segment"
     ),
     weights: Annotated[
-        str, typer.Option(help="Shipped network (default, no-intensity) or a train-backbone file.")
+        str, typer.Option(help="Shipped network (default, no-intensity, intensity-rank) or a file.")
     ] = "default",
     preview: Annotated[
         bool, typer.Option(help="Also a bird's-eye PNG per scan, coloured by class.")

@@ -34,6 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import rankdata
 
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
@@ -53,10 +54,15 @@ _LABEL_LUT[list(_MOVING)] = [_KITTI_IDS.index(v) for v in _MOVING.values()]
 
 NET_FORMAT = "gloam-jax-net"
 # The shipped networks by name (gloam_jax/data/): "default" reads intensity, "no-intensity"
-# is geometry only (docs/backbone.md, "Intensity").
+# is geometry only, "intensity-rank" reads each voxel's intensity rank in its scan
+# (docs/backbone.md, "Intensity").
 SHIPPED_NETS = {
     name: Path(__file__).resolve().parent.parent / "data" / file
-    for name, file in (("default", "net_default.npz"), ("no-intensity", "net_no_intensity.npz"))
+    for name, file in (
+        ("default", "net_default.npz"),
+        ("no-intensity", "net_no_intensity.npz"),
+        ("intensity-rank", "net_intensity_rank.npz"),
+    )
 }
 _RANGE_SCALE = 50.0  # m
 _HEIGHT_SCALE = 3.0  # m
@@ -82,6 +88,10 @@ class NetConfig:
     # data whose intensity scale or model differs from the training scans' (other sensors, real
     # scans, other simulators): docs/backbone.md, "Intensity".
     intensity: bool = True
+    # Feed each voxel's mean intensity as its rank among the scan's voxels (0..1) instead:
+    # blind to units, gain and offset (other monotone responses nearly: the ranks are of voxel
+    # means), though not to another order of materials.
+    intensity_rank: bool = False
 
 
 class NetInputs(NamedTuple):
@@ -256,6 +266,14 @@ def _hidden(net: SegNet, x: NetInputs) -> jax.Array:
     return net.hidden(x)
 
 
+def scan_intensity(intensity: np.ndarray, config: NetConfig) -> np.ndarray:
+    """What the network reads of one scan's voxel intensities (M,): as measured, or each one's
+    rank in the scan (ties share their mean rank), scaled to (0, 1)."""
+    if not config.intensity_rank or len(intensity) == 0:
+        return intensity
+    return (rankdata(intensity, method="average") - 0.5) / len(intensity)
+
+
 def _scan_voxels(scan: np.ndarray, config: NetConfig) -> tuple[NetInputs, np.ndarray, int] | None:
     """The network's inputs for a raw scan (N, 3+), each row's voxel (N,) (-1 for rows with
     non-finite coordinates) and the voxel count; None for a scan without finite rows."""
@@ -265,7 +283,7 @@ def _scan_voxels(scan: np.ndarray, config: NetConfig) -> tuple[NetInputs, np.nda
     xyz, intensity, inverse = voxelize(scan[finite], config.voxel_size)
     voxel = np.full(len(scan), -1, np.int64)
     voxel[finite] = inverse
-    return build_inputs(xyz, intensity, config), voxel, len(xyz)
+    return build_inputs(xyz, scan_intensity(intensity, config), config), voxel, len(xyz)
 
 
 def run_scan(net: SegNet, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -344,7 +362,8 @@ class NetBackbone:
     """Per-point embeddings of a trained :class:`SegNet`: raw scan (N, 3+) -> (N, embed).
 
     ``weights``: a file from ``gloam train-backbone``, or the name of a shipped network:
-    ``"default"`` (``gloam_jax/data/net_default.npz``) or ``"no-intensity"`` (geometry only).
+    ``"default"`` (``gloam_jax/data/net_default.npz``), ``"no-intensity"`` (geometry only) or
+    ``"intensity-rank"`` (intensity as its rank in the scan).
     """
 
     name = "net"
@@ -360,7 +379,8 @@ class NetBackbone:
     def fitted_intensity(self, pca: object = None) -> float | None:
         """The mean intensity of the network's training points (its weight file's
         provenance); None when it reads no intensity or the file does not say."""
-        return self.provenance.get("intensity_mean") if self.net.config.intensity else None
+        reads_units = self.net.config.intensity and not self.net.config.intensity_rank
+        return self.provenance.get("intensity_mean") if reads_units else None
 
     def options(self) -> dict[str, Any]:
         """Keyword arguments that rebuild this backbone (JSON-serialisable)."""

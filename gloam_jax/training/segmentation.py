@@ -35,6 +35,7 @@ from gloam_jax.features.net import (
     class_index,
     run_scan,
     save_net,
+    scan_intensity,
     voxelize,
 )
 from gloam_jax.io.kitti import KittiSequence
@@ -89,6 +90,7 @@ def load_training_scans(cfg: SegmentationConfig, progress=None) -> list[Labelled
             scan = seq.scan(i)
             finite = np.all(np.isfinite(scan[:, :3]), axis=1)
             xyz, intensity, inverse = voxelize(scan[finite], cfg.net.voxel_size)
+            intensity = scan_intensity(intensity, cfg.net)
             cls = class_index(seq.labels(i)[finite])
             # Majority vote per voxel over labelled points (class -1 counts in no column).
             votes = np.zeros((len(xyz), len(CLASSES)), np.int32)
