@@ -52,6 +52,7 @@ def main() -> None:
     parser.add_argument("--sequences", default="00,02,04")
     parser.add_argument("--real", type=Path, required=True, help="real scans (any dataset)")
     parser.add_argument("--methods", default="gicp,gloam,gloam_net")
+    parser.add_argument("--weights", type=Path, default=None, help="model for learned methods")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
 
@@ -76,12 +77,14 @@ def main() -> None:
         tag = "as_is" if root == args.data else root.name
         for method in args.methods.split(","):
             for s in sequences:
-                row = run(root, s, method, None, args.out / tag / method / s, "frame_to_model")
+                weights = None if method == "gicp" else args.weights
+                row = run(root, s, method, weights, args.out / tag / method / s, "frame_to_model")
                 results.setdefault(method, {}).setdefault(variant, {})[s] = row["t_err"]
                 print(variant, method, s, f"{row['t_err']:.3f} %", flush=True)
 
+    weights = None if args.weights is None else str(args.weights)
     record = {"command": "python " + " ".join(sys.argv), "commit": commit(),
-              "data": str(args.data), "t_err_percent": results}  # fmt: skip
+              "data": str(args.data), "weights": weights, "t_err_percent": results}  # fmt: skip
     write_atomic(args.out / "intensity_odometry.json", json.dumps(record, indent=1))
     lines = [f"`{record['command']}` at `{record['commit']}`", "",
              "| method | intensity | " + " | ".join(sequences) + " | mean |",
