@@ -129,8 +129,7 @@ def run_kiss(seq: io.KittiSequence, n: int, threads: int):
 def score(gt: np.ndarray, est: np.ndarray) -> dict:
     """Devkit t_err and r_err; on a drive shorter than the devkit's shortest segment (100 m),
     over segments scaled to the drive (``make_tables.window_rte``), whose lengths it records."""
-    path_m = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1).sum()
-    if path_m > min(metrics.DEFAULT_LENGTHS):
+    if metrics.path_lengths(gt)[-1] > min(metrics.DEFAULT_LENGTHS):
         rte = metrics.kitti_rte(gt, est)
         return {"t_err_percent": rte.t_err_percent, "r_err_deg_per_100m": rte.r_err_deg_per_100m}
     w = window_rte(gt, est)

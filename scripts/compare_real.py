@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from make_tables import commit
 
-from gloam_jax import io
+from gloam_jax import io, metrics
 from gloam_jax.config import load_config
 from gloam_jax.datasets import open_dataset
 from gloam_jax.pipeline import run_dataset, select_frames
@@ -59,7 +59,7 @@ def step_differences(ours: np.ndarray, theirs: np.ndarray) -> dict[str, float]:
     cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
     return {"trans_cm_mean": float(dt.mean()), "trans_cm_max": float(dt.max()),
             "rot_deg_mean": float(np.degrees(np.arccos(cos)).mean()),
-            "path_m": float(np.linalg.norm(a[:, :3, 3], axis=1).sum())}  # fmt: skip
+            "path_m": float(metrics.path_lengths(ours)[-1])}  # fmt: skip
 
 
 def main() -> None:
@@ -73,7 +73,7 @@ def main() -> None:
     dataset = open_dataset(args.data, args.sequence)
     frames = select_frames(len(dataset))
     theirs = small_gicp_odometry([dataset.frame(i)[0] for i in frames])
-    rows = {"small_gicp": {"path_m": step_differences(theirs, theirs)["path_m"]}}
+    rows = {"small_gicp": {"path_m": float(metrics.path_lengths(theirs)[-1])}}
     for method in args.methods.split(","):
         with tempfile.TemporaryDirectory() as tmp:
             result = run_dataset(dataset, load_config(method), tmp, frames)

@@ -48,19 +48,6 @@ def zero_intensity(scan: np.ndarray) -> np.ndarray:
     return out
 
 
-def point_accuracy(backbone: NetBackbone, seqs, frames, transform=None) -> float:
-    right = total = 0
-    for seq in seqs:
-        for i in frames[seq.sequence]:
-            truth = class_index(seq.labels(i))
-            scan = seq.scan(i) if transform is None else transform(seq.scan(i))
-            pred = class_index(backbone.segment(scan))
-            known = truth >= 0
-            right += int(np.sum(pred[known] == truth[known]))
-            total += int(known.sum())
-    return right / total
-
-
 def shares(labels: np.ndarray) -> dict[str, float]:
     idx = class_index(labels)
     counts = np.bincount(idx[idx >= 0], minlength=len(CLASSES))
@@ -96,7 +83,7 @@ def main() -> None:
         sim_rows[name] = {
             "miou": scores["miou"],
             "iou": scores["iou"],
-            "point_accuracy": point_accuracy(backbone, seqs, frames, transform),
+            "point_accuracy": scores["accuracy"],
         }
         print(name, f"mIoU {100 * scores['miou']:.1f} %", flush=True)
 

@@ -1,19 +1,14 @@
 """scripts/eval_batch.py: which weights a model argument loads, and what it refuses."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
+from repo_scripts import import_script
 
 from gloam_jax.config import dump_config, load_config
 from gloam_jax.models import load_model, shipped_model_path
 from gloam_jax.training.config import TrainConfig
 
-ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("eval_batch", ROOT / "scripts/eval_batch.py")
-eval_batch = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(eval_batch)
+eval_batch = import_script("eval_batch")
 
 
 def test_a_model_file_loads_as_itself():

@@ -1,12 +1,12 @@
 """scripts/make_tables.py --split: aggregation over seeds, once-only test scoring, provenance."""
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from repo_scripts import import_script
 
 from gloam_jax.models import load_model, shipped_model_path
 from gloam_jax.simulate import simulate
@@ -15,10 +15,7 @@ from gloam_jax.simulate import simulate
 pytestmark = pytest.mark.xdist_group("make_tables")
 
 
-ROOT = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("make_tables", ROOT / "scripts/make_tables.py")
-make_tables = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(make_tables)
+make_tables = import_script("make_tables")
 
 
 def test_aggregate_is_mean_and_sample_std():

@@ -84,7 +84,7 @@ class TrainConfig:
     init: Literal["random", "gicp"] = "gicp"  # without init_model: how the MLPs start
     # Without init_model: the feature backbone whose PCA is fitted (net: backbone_weights).
     backbone: Literal["geometric", "net"] = "geometric"
-    # net: a shipped network's name ("default", "no-intensity") or a train-backbone file.
+    # net: a shipped network's name (features.net.SHIPPED_NETS) or a train-backbone file.
     backbone_weights: str = "default"
     pca_every: int = 25  # without init_model: fit the PCA on every N-th training scan
     seed: int = 0  # of the start model, TPE's sampler and the point subsets

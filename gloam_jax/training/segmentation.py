@@ -193,13 +193,16 @@ def confusion_matrix(labels: np.ndarray, predicted: np.ndarray) -> np.ndarray:
 
 
 def iou_scores(confusion: np.ndarray) -> dict[str, Any]:
-    """Per-class IoU and their mean over the classes with ground-truth points."""
+    """Per-class IoU, their mean over the classes with ground-truth points, and the share of
+    points classed right."""
     tp = np.diag(confusion).astype(np.float64)
     union = confusion.sum(0) + confusion.sum(1) - tp
     present = np.flatnonzero(confusion.sum(1) > 0)
     iou = {CLASSES[j]: float(tp[j] / union[j]) for j in present}
     miou = float(np.mean(list(iou.values()))) if iou else float("nan")
-    return {"miou": miou, "iou": iou, "points": int(confusion.sum())}
+    points = int(confusion.sum())
+    accuracy = float(tp.sum() / points) if points else float("nan")
+    return {"miou": miou, "iou": iou, "accuracy": accuracy, "points": points}
 
 
 def plot_curve(history: list[dict[str, Any]], path: Path) -> None:
