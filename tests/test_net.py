@@ -235,6 +235,9 @@ def test_shipped_network_loads_and_says_how_it_was_trained():
 
     picked = load_config("train_protocol_net_noint_finetune", TrainConfig)
     assert (picked.backbone, picked.backbone_weights) == ("net", "no-intensity")
+    picked = load_config("train_protocol_net_rank_finetune", TrainConfig)
+    assert (picked.backbone, picked.backbone_weights) == ("net", "intensity-rank")
+    assert picked.grad.head_learning_rate == 0.001
     with pytest.raises(InputError, match="backbone_weights chooses the net"):
         TrainConfig(backbone_weights="no-intensity")
 
