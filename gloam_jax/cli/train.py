@@ -19,6 +19,7 @@ from gloam_jax.cli.common import (
     user_errors,
 )
 from gloam_jax.errors import InputError
+from gloam_jax.interrupt import Terminated, stop_on
 
 
 @app.command(
@@ -126,10 +127,10 @@ def train(
     """Train the MLPs by TPE (the paper's black-box search) or by gradients through GICP."""
     if compilation_cache:
         use_compilation_cache()
-    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
-        _train(config, mode, data, out, trials, seed, steps, learning_rate, cache, storage,
-               study_name, workers)  # fmt: skip
+        with stop_on(signal.SIGTERM):
+            _train(config, mode, data, out, trials, seed, steps, learning_rate, cache, storage,
+                   study_name, workers)  # fmt: skip
     except KeyboardInterrupt as stop:
         code = 143 if isinstance(stop, Terminated) else 130
         what = "SIGTERM" if code == 143 else "interrupted"
@@ -139,17 +140,6 @@ def train(
             highlight=False,
         )
         raise typer.Exit(code) from None
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, taking the same way out as Ctrl-C."""
-
-
-def _terminate(signum, frame) -> None:
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one is enough: let the trial be marked
-    raise Terminated
 
 
 def _train(config, mode, data, out, trials, seed, steps, learning_rate, cache, storage,

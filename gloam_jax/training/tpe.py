@@ -35,6 +35,7 @@ from optuna.trial import TrialState
 
 from gloam_jax import io
 from gloam_jax.errors import InputError
+from gloam_jax.interrupt import stop_on
 from gloam_jax.learned import MLP, Learned
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.problem import (
@@ -330,28 +331,21 @@ def run_trials(study: optuna.Study, problem: Problem, callbacks: list | None = N
             study.optimize(_objective(problem), callbacks=[budget, *(callbacks or [])])
 
 
-def _first_signal_only(signum, frame) -> None:
-    """A worker's SIGINT/SIGTERM: end the running trial as failed (optuna marks a trial that
-    raises KeyboardInterrupt FAIL), ignoring repeats so that the marking completes."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    raise KeyboardInterrupt
-
-
 def _worker_main() -> None:
     """One worker process (``python -c``, argv: run folder, cache folder or '', study name):
     the prepared problem (from the cache) and trials until the study is done."""
     from gloam_jax.config import load_config
 
-    signal.signal(signal.SIGINT, _first_signal_only)
-    signal.signal(signal.SIGTERM, _first_signal_only)
     optuna.logging.set_verbosity(optuna.logging.ERROR)
     run_dir, cache_dir, name = sys.argv[1:4]
+    # The first SIGINT/SIGTERM ends the running trial as failed: optuna marks a trial that
+    # raises KeyboardInterrupt FAIL.
     try:
-        config = load_config(Path(run_dir) / "config.yaml", TrainConfig)
-        storage = open_storage(config, run_dir)
-        problem = setup(config, run_dir, cache_dir=cache_dir or None, validation=False)
-        run_trials(open_study(problem, storage, name, seeded=False), problem)
+        with stop_on(signal.SIGINT, signal.SIGTERM):
+            config = load_config(Path(run_dir) / "config.yaml", TrainConfig)
+            storage = open_storage(config, run_dir)
+            problem = setup(config, run_dir, cache_dir=cache_dir or None, validation=False)
+            run_trials(open_study(problem, storage, name, seeded=False), problem)
     except KeyboardInterrupt:
         raise SystemExit(130) from None
     except InputError as err:

@@ -1,0 +1,49 @@
+"""A long job's stop on a signal (gloam_jax.interrupt)."""
+
+import signal
+import time
+import weakref
+
+import pytest
+
+from gloam_jax.interrupt import Terminated, stop_on
+
+
+class _Thing:
+    pass
+
+
+def _wait_for_the_signal() -> None:
+    for _ in range(500):
+        time.sleep(0.01)
+
+
+def test_the_first_sigterm_raises_terminated_and_repeats_are_ignored():
+    before = signal.getsignal(signal.SIGTERM)
+    with pytest.raises(Terminated):
+        with stop_on(signal.SIGTERM):
+            signal.raise_signal(signal.SIGTERM)
+            _wait_for_the_signal()
+    assert signal.getsignal(signal.SIGTERM) is before
+    with pytest.raises(KeyboardInterrupt) as caught:
+        with stop_on(signal.SIGINT, signal.SIGTERM):
+            signal.raise_signal(signal.SIGINT)
+            _wait_for_the_signal()
+    assert not isinstance(caught.value, Terminated)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_an_interrupt_raised_inside_a_finaliser_is_delivered_again():
+    def finaliser(_):
+        signal.raise_signal(signal.SIGTERM)
+        len([])  # a call: the handler runs here, inside the finaliser, where Python swallows it
+
+    start = time.monotonic()
+    with pytest.raises(Terminated):
+        with stop_on(signal.SIGTERM):
+            thing = _Thing()
+            ref = weakref.ref(thing, finaliser)
+            del thing
+            assert ref() is None  # the finaliser has run, and the job carries on ...
+            _wait_for_the_signal()  # ... until the interrupt arrives again
+    assert time.monotonic() - start < 4.0
