@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from gloam_jax.cli import app
 from gloam_jax.errors import InputError
-from gloam_jax.features import fit_pca, get_backbone
+from gloam_jax.features import fit_pca, get_backbone, intensity_warning
 from gloam_jax.features.net import (
     CLASSES,
     NetConfig,
@@ -96,7 +96,12 @@ def test_networks_blind_to_intensity_or_to_its_units(tmp_path):
     recalibrated[:, 3] = 255 * scan[:, 3] + 3  # other units and offset
     np.testing.assert_allclose(backbone(recalibrated), backbone(scan), atol=1e-6)
     assert not np.allclose(backbone(relit), backbone(scan), atol=1e-6)  # another order
-    assert backbone.fitted_intensity() is None  # nothing for a run to check
+    assert backbone.fitted_intensity() is None  # no units for a run to check, ...
+    assert intensity_warning(backbone, None, recalibrated) is None
+    flat = scan.copy()
+    flat[:, 3] = 0.0
+    for bare in (flat, scan[:, :3]):  # ... but an order: none without intensity
+        assert "carry no intensity" in intensity_warning(backbone, None, bare)
 
 
 def test_training_step_overfits_a_tiny_set():

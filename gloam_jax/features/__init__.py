@@ -60,8 +60,15 @@ INTENSITY_FACTOR = 3.0
 
 def intensity_warning(backbone: Backbone, pca: FeaturePCA, scan: np.ndarray) -> str | None:
     """One line when ``scan`` (N, 3+) has no intensity or a mean intensity more than
-    INTENSITY_FACTOR from the one ``backbone``'s learned features were fitted on; None
+    INTENSITY_FACTOR from the one ``backbone``'s learned features were fitted on (for a
+    network that reads intensity ranks: no intensity, or one value throughout); None
     otherwise, and for backbones that read no intensity."""
+    if getattr(backbone, "reads_intensity_order", False):
+        values = scan[:, 3][np.isfinite(scan[:, 3])] if scan.shape[1] > 3 else scan[:0, 0]
+        if len(values) and values.min() < values.max():
+            return None
+        return (f"the scans carry no intensity (none, or one value), but the '{backbone.name}' "
+                "features read its order in each scan; the learned parts may not hold")  # fmt: skip
     fitted = getattr(backbone, "fitted_intensity", lambda _: None)(pca)
     if fitted is None or not fitted > 0:
         return None

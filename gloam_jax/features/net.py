@@ -376,6 +376,11 @@ class NetBackbone:
     def dim(self) -> int:
         return self.net.config.embed
 
+    @property
+    def reads_intensity_order(self) -> bool:
+        """Whether the network reads each voxel's intensity rank in its scan (no units)."""
+        return self.net.config.intensity and self.net.config.intensity_rank
+
     def fitted_intensity(self, pca: object = None) -> float | None:
         """The mean intensity of the network's training points (its weight file's
         provenance); None when it reads no intensity or the file does not say."""
