@@ -63,9 +63,9 @@ def intensity_warning(backbone: Backbone, pca: FeaturePCA, scan: np.ndarray) -> 
     INTENSITY_FACTOR from the one ``backbone``'s learned features were fitted on (for a
     network that reads intensity ranks: no intensity, or one value throughout); None
     otherwise, and for backbones that read no intensity."""
+    values = scan[:, 3][np.isfinite(scan[:, 3])] if scan.shape[1] > 3 else None
     if getattr(backbone, "reads_intensity_order", False):
-        values = scan[:, 3][np.isfinite(scan[:, 3])] if scan.shape[1] > 3 else scan[:0, 0]
-        if len(values) and values.min() < values.max():
+        if values is not None and len(values) and values.min() < values.max():
             return None
         return (f"the scans carry no intensity (none, or one value), but the '{backbone.name}' "
                 "features read its order in each scan; the learned parts may not hold")  # fmt: skip
@@ -73,9 +73,8 @@ def intensity_warning(backbone: Backbone, pca: FeaturePCA, scan: np.ndarray) -> 
     if fitted is None or not fitted > 0:
         return None
     where = f"the '{backbone.name}' features were fitted on a mean intensity of {fitted:.3g}"
-    if scan.shape[1] < 4:
+    if values is None:
         return f"the scans carry no intensity, but {where}; the learned parts may not hold"
-    values = scan[:, 3][np.isfinite(scan[:, 3])]
     mean = float(values.mean()) if len(values) else 0.0
     if fitted / INTENSITY_FACTOR <= mean <= fitted * INTENSITY_FACTOR:
         return None

@@ -384,7 +384,7 @@ class NetBackbone:
     def fitted_intensity(self, pca: object = None) -> float | None:
         """The mean intensity of the network's training points (its weight file's
         provenance); None when it reads no intensity or the file does not say."""
-        reads_units = self.net.config.intensity and not self.net.config.intensity_rank
+        reads_units = self.net.config.intensity and not self.reads_intensity_order
         return self.provenance.get("intensity_mean") if reads_units else None
 
     def options(self) -> dict[str, Any]:
