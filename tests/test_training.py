@@ -105,9 +105,10 @@ def test_tpe_runs_resumes_and_exports(tiny_training, tmp_path):
 
 
 def test_grad_runs_and_resumes_to_the_same_weights(tiny_training, tmp_path):
-    """With a random subset of source points per step: a resumed run repeats them. (Resuming
-    inside a step: the Ctrl-C test of test_batch.py, with the same training step.)"""
-    grad = GradConfig(steps=2, eval_every=1, learning_rate=0.01, source_points=64)
+    """With a random subset of source points per step: a resumed run repeats them, and the
+    warm-up goes on from the step it stopped at. (Resuming inside a step: the Ctrl-C test of
+    test_batch.py, with the same training step.)"""
+    grad = GradConfig(steps=2, eval_every=1, learning_rate=0.01, source_points=64, warmup_steps=2)
     cfg = tiny_training.config(mode="grad", grad=grad)
     cache = tmp_path / "cache"
     straight = train_grad(setup(cfg, tmp_path / "a", cache_dir=cache))
@@ -131,6 +132,26 @@ def test_grad_source_points_must_be_positive():
 
     with pytest.raises(InputError, match="source_points must be >= 1"):
         GradConfig(source_points=0)
+    with pytest.raises(InputError, match="warmup_steps must be >= 0"):
+        GradConfig(warmup_steps=-1)
+
+
+@pytest.mark.parametrize("warmup", [0, 4])
+def test_warmup_scales_the_first_adam_steps(warmup):
+    """Under a constant gradient Adam moves each weight by its rate, so step k moves it by
+    rate * min(1, k / warmup_steps)."""
+    from types import SimpleNamespace
+
+    from gloam_jax.training.grad import _optimizer
+
+    cfg = GradConfig(learning_rate=0.01, warmup_steps=warmup)
+    optimizer = _optimizer(SimpleNamespace(config=SimpleNamespace(grad=cfg)))
+    params, grads = {"w": jnp.zeros(3)}, {"w": jnp.array([0.5, -2.0, 1e-3])}
+    state = optimizer.init(params)
+    for k in range(1, 7):
+        updates, state = optimizer.update(grads, state, params)
+        expected = 0.01 * (min(1.0, k / warmup) if warmup else 1.0)
+        np.testing.assert_allclose(np.abs(updates["w"]), expected, rtol=1e-4)
 
 
 def test_the_command_line_sets_equinox_errors_to_nan_unless_told_otherwise():

@@ -51,6 +51,10 @@ class GradConfig:
     steps: int = 40
     learning_rate: float = 0.02
     clip_norm: float = 1.0  # global gradient norm clip
+    # Steps over which every Adam rate rises linearly from 0 to its value; 0: full rate from the
+    # first step. Adam's first steps move each weight by about the full rate whatever the
+    # gradient's size, which from the exact GICP start is large against the eps floor.
+    warmup_steps: int = 0
     eval_every: int = 2  # steps between hard-association evaluations of the training loss
     checkpoint_every: int = 1  # steps between checkpoints
     # Source points per pair in a step: a fresh random subset of the prepared ones each step
@@ -63,6 +67,8 @@ class GradConfig:
     def __post_init__(self) -> None:
         if self.source_points is not None and self.source_points < 1:
             raise InputError(None, f"grad.source_points must be >= 1, not {self.source_points}")
+        if self.warmup_steps < 0:
+            raise InputError(None, f"grad.warmup_steps must be >= 0, not {self.warmup_steps}")
         if self.head_learning_rate is not None and not self.head_learning_rate > 0:
             raise InputError(
                 None, f"grad.head_learning_rate must be positive, not {self.head_learning_rate}"
