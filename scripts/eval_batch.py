@@ -20,11 +20,12 @@ import dataclasses
 import json
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from gloam_jax.config import load_config
 from gloam_jax.io import write_atomic
-from gloam_jax.learned import Learned
+from gloam_jax.learned import EigenvalueEstimationMLP, Learned, plane_output
 from gloam_jax.models import GLOAMModel, learned_parts, load_model, with_mlps
 from gloam_jax.training.batch import Evaluator
 from gloam_jax.training.config import TrainConfig
@@ -55,6 +56,8 @@ def main() -> None:
                         help="LABEL=FILE, a model file or a run's checkpoint.npz")  # fmt: skip
     parser.add_argument("--data", action="append", help="root (repeatable; default: the config's)")
     parser.add_argument("--method", default="gloam", help="parts to score: gicp_da,gicp_ce,gloam")
+    parser.add_argument("--plane-eps", help="also GICP with these plane eps (comma-separated): "
+                        "(eps, 1, 1) as a constant eigenvalue MLP")  # fmt: skip
     parser.add_argument("--cache", type=Path, default=Path("runs/cache"))
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
@@ -73,6 +76,10 @@ def main() -> None:
     sequences = names if len(roots) == 1 else [f"{Path(r).name}/{n}" for r in roots for n in names]
     evaluate = Evaluator(data, config)
     rows = {"GICP": evaluate(Learned())}
+    mlp = EigenvalueEstimationMLP.init(jax.random.PRNGKey(0))
+    for eps in args.plane_eps.split(",") if args.plane_eps else []:
+        plane = mlp.constant(plane_output(float(eps)))
+        rows[f"GICP, plane eps {eps}"] = evaluate(Learned(eigenvalue=plane))
     methods = args.method.split(",")
     for label, model in loaded.items():
         for method in methods:
