@@ -28,3 +28,24 @@ def test_a_fine_tuning_runs_checkpoint_is_refused_in_one_line(tmp_path):
     message = str(refused.value)
     assert "\n" not in message and "fine-tuning run's checkpoint" in message
     assert "model.npz" in message and str(tmp_path / "checkpoint.npz") in message
+
+
+def test_plane_eps_rows_are_gicp_with_thicker_planes(tiny_training, tmp_path, monkeypatch):
+    """GICP's own eps as a constant eigenvalue MLP gives GICP's errors; a thicker plane
+    changes them."""
+    import json
+    import sys
+
+    config = tmp_path / "config.yaml"
+    dump_config(tiny_training.config(), config)
+    out = tmp_path / "eval.json"
+    monkeypatch.setattr(sys, "argv", [
+        "eval_batch.py", "--config", str(config), "--sequences", "00",
+        "--model", f"start={tiny_training.start}", "--plane-eps", "0.001,0.03",
+        "--cache", str(tmp_path / "cache"), "--out", str(out),
+    ])  # fmt: skip
+    eval_batch.main()
+    rows = json.loads(out.read_text())
+    gicp = rows["GICP"]["mean"]
+    assert rows["GICP, plane eps 0.001"]["mean"] == pytest.approx(gicp, rel=1e-4)
+    assert abs(rows["GICP, plane eps 0.03"]["mean"] - gicp) > 1e-3 * gicp
