@@ -1,0 +1,79 @@
+"""How thick the planes of learned covariances are, world by world.
+
+    python scripts/probe_thickness.py --data data/protocol2 --sequences 201,202,203,204,205 \\
+        --model shipped=gloam_jax/data/gloam_default.npz \\
+        --model step60=runs/warm/grad_s0/checkpoint.npz
+
+Plain GICP gives every point the eigenvalues (eps, 1, 1): a plane whose thickness, the
+smallest eigenvalue over the middle one, is eps = 0.001. Algorithm 1's learned eigenvalues give
+each point its own. For every ``--every``-th scan of each world this prints the median
+thickness of the voxel centres and the share of them thicker than ``--thick`` (the plane
+thickness at which GICP's batch error on the val worlds starts to move: docs/results.md, "What
+the learned covariances trade").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from eval_batch import _load
+
+from gloam_jax import covariance as cov
+from gloam_jax.config import load_config
+from gloam_jax.datasets import open_dataset
+from gloam_jax.io import write_atomic
+from gloam_jax.preprocess import preprocess_scan
+from gloam_jax.training.config import TrainConfig
+
+
+def thickness(model, scan: np.ndarray, config) -> np.ndarray:
+    """Smallest over middle learned eigenvalue (M,) of one raw scan's voxel centres."""
+    features = model.backbone()(scan)
+    _, pca_features, _, _ = preprocess_scan(scan, None, config, pca=model.pca, features=features)
+    values = np.asarray(cov.learned_values(model.eigenvalue(pca_features), model.eps))
+    return values[:, 0] / values[:, 1]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--sequences", required=True, help="comma-separated ids")
+    parser.add_argument("--model", action="append", required=True,
+                        help="LABEL=FILE: a model file or a gradient run's checkpoint")  # fmt: skip
+    parser.add_argument("--config", type=Path, default=Path("configs/train_protocol.yaml"))
+    parser.add_argument("--every", type=int, default=10)
+    parser.add_argument("--thick", type=float, default=0.0025)
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args()
+    config = load_config(args.config, TrainConfig).preprocess
+    models = {label: _load(Path(path)) for label, path in (m.split("=", 1) for m in args.model)}
+    result = {}
+    print("| model | " + " | ".join(args.sequences.split(",")) + " |")
+    print("|" + "---|" * (len(args.sequences.split(",")) + 1))
+    for label, model in models.items():
+        row = {}
+        for name in args.sequences.split(","):
+            dataset = open_dataset(args.data, name)
+            t = np.concatenate([thickness(model, dataset.frame(i)[0], config)
+                                for i in range(0, len(dataset), args.every)])  # fmt: skip
+            row[name] = {
+                "median": float(np.median(t)),
+                "thick_share": float(np.mean(t > args.thick)),
+            }
+        result[label] = row
+        print(
+            f"| {label} | "
+            + " | ".join(
+                f"{r['median']:.4f} ({100 * r['thick_share']:.0f} %)" for r in row.values()
+            )
+            + " |"
+        )
+    if args.out is not None:
+        write_atomic(args.out, json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
