@@ -1,4 +1,7 @@
-"""scripts/eval_batch.py: which weights a model argument loads, and what it refuses."""
+"""scripts/eval_batch.py: which weights a model argument loads, and what it refuses; its
+--plane-eps rows; probe_thickness.py, which loads models through it."""
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -49,3 +52,20 @@ def test_plane_eps_rows_are_gicp_with_thicker_planes(tiny_training, tmp_path, mo
     gicp = rows["GICP"]["mean"]
     assert rows["GICP, plane eps 0.001"]["mean"] == pytest.approx(gicp, rel=1e-4)
     assert abs(rows["GICP, plane eps 0.03"]["mean"] - gicp) > 1e-3 * gicp
+
+
+def test_thickness_probe_reads_gicp_as_its_eps_and_a_learned_model_as_its_own(tiny_training):
+    """probe_thickness.py: the GICP start's planes are eps thick on every centre; weights that
+    output (0.05, 1, 1) everywhere are 0.05 thick."""
+    from gloam_jax.datasets import open_dataset
+    from gloam_jax.learned import plane_output
+    from gloam_jax.preprocess import PreprocessConfig
+
+    probe = import_script("probe_thickness")
+    model = tiny_training.model
+    scan = open_dataset(tiny_training.config().data, "00").frame(0)[0]
+    start = probe.thickness(model, scan, PreprocessConfig())
+    assert len(start) > 100
+    np.testing.assert_allclose(start, model.eps, rtol=1e-5)
+    thick = dataclasses.replace(model, eigenvalue=model.eigenvalue.constant(plane_output(0.05)))
+    np.testing.assert_allclose(probe.thickness(thick, scan, PreprocessConfig()), 0.05, rtol=1e-5)
