@@ -54,9 +54,9 @@ def test_plane_eps_rows_are_gicp_with_thicker_planes(tiny_training, tmp_path, mo
     assert abs(rows["GICP, plane eps 0.03"]["mean"] - gicp) > 1e-3 * gicp
 
 
-def test_thickness_probe_reads_gicp_as_its_eps_and_a_learned_model_as_its_own(tiny_training):
+def test_thickness_probe_and_the_thickness_cap(tiny_training):
     """probe_thickness.py: the GICP start's planes are eps thick on every centre; weights that
-    output (0.05, 1, 1) everywhere are 0.05 thick."""
+    output (0.05, 1, 1) everywhere are 0.05 thick, 0.01 under eval_batch's cap of 0.01."""
     from gloam_jax.datasets import open_dataset
     from gloam_jax.learned import plane_output
     from gloam_jax.preprocess import PreprocessConfig
@@ -64,8 +64,14 @@ def test_thickness_probe_reads_gicp_as_its_eps_and_a_learned_model_as_its_own(ti
     probe = import_script("probe_thickness")
     model = tiny_training.model
     scan = open_dataset(tiny_training.config().data, "00").frame(0)[0]
-    start = probe.thickness(model, scan, PreprocessConfig())
+    config = PreprocessConfig()
+    start = probe.thickness(model, scan, config)
     assert len(start) > 100
     np.testing.assert_allclose(start, model.eps, rtol=1e-5)
     thick = dataclasses.replace(model, eigenvalue=model.eigenvalue.constant(plane_output(0.05)))
-    np.testing.assert_allclose(probe.thickness(thick, scan, PreprocessConfig()), 0.05, rtol=1e-5)
+    np.testing.assert_allclose(probe.thickness(thick, scan, config), 0.05, rtol=1e-5)
+    # eval_batch --max-thickness: planes thinned to the cap, thinner ones left as they are.
+    capped = dataclasses.replace(thick, eigenvalue=eval_batch.capped(thick.eigenvalue, 0.01))
+    np.testing.assert_allclose(probe.thickness(capped, scan, config), 0.01, rtol=1e-5)
+    kept = dataclasses.replace(model, eigenvalue=eval_batch.capped(model.eigenvalue, 0.01))
+    np.testing.assert_allclose(probe.thickness(kept, scan, config), model.eps, rtol=1e-5)
