@@ -212,3 +212,20 @@ def test_compilation_cache_lives_in_the_user_cache_and_can_be_turned_off(tmp_pat
     finally:
         jax.config.update("jax_compilation_cache_dir", before[0])
         jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
+
+
+def test_every_shipped_config_loads():
+    """Each YAML under gloam_jax/configs/ builds its dataclass, its base chain included."""
+    from pathlib import Path
+
+    import gloam_jax
+    from gloam_jax.config import load_config
+    from gloam_jax.odometry import OdometryConfig
+    from gloam_jax.training.config import TrainConfig
+
+    names = sorted(p.stem for p in (Path(gloam_jax.__file__).parent / "configs").glob("*.yaml"))
+    assert len(names) >= 15
+    for name in names:
+        config = load_config(name, TrainConfig if name.startswith("train") else OdometryConfig)
+        if name.endswith("_warmup"):
+            assert config.grad.warmup_steps == 20 and config.grad.steps == 60
