@@ -96,12 +96,12 @@ def main() -> None:
         plane = mlp.constant(plane_output(float(eps)))
         rows[f"GICP, plane eps {eps}"] = evaluate(Learned(eigenvalue=plane))
     methods = args.method.split(",")
+    caps = args.max_thickness.split(",") if args.max_thickness else []
     for label, model in loaded.items():
         for method in methods:
             name = label if len(methods) == 1 else f"{label} ({method})"
             parts = learned_parts(model, method)
             rows[name] = evaluate(parts)
-            caps = args.max_thickness.split(",") if args.max_thickness else []
             for cap in caps if parts.eigenvalue is not None else []:
                 capped_parts = parts._replace(eigenvalue=capped(parts.eigenvalue, float(cap)))
                 rows[f"{name}, planes <= {cap}"] = evaluate(capped_parts)
