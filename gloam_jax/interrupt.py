@@ -6,6 +6,9 @@ Python runs a signal's handler at the next bytecode of the main thread, which ma
 finaliser (a weakref callback, ``__del__``). An exception raised there is reported as
 "ignored" and the job carries on, its repeats now ignored: the job would run to its end. So an
 interrupt swallowed that way is sent again, from another thread, once the finaliser is done.
+Extension code can also clear the exception without a trace; so the job calls
+:func:`raise_if_stopped` where it passes only while running normally (between trials, between
+steps), and a block that ends without the interrupt raises it on the way out.
 """
 
 from __future__ import annotations
@@ -22,17 +25,37 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, taking the same way out as Ctrl-C."""
 
 
+# The signals whose interrupt was raised inside the current stop_on block.
+_raised: list[int] = []
+
+
+def _interrupt(signum: int) -> KeyboardInterrupt:
+    return Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+
 def _raise_once(signum: int, frame: object) -> None:
     for repeat in (signal.SIGINT, signal.SIGTERM):
         signal.signal(repeat, signal.SIG_IGN)
-    raise Terminated if signum == signal.SIGTERM else KeyboardInterrupt
+    _raised.append(signum)
+    raise _interrupt(signum)
+
+
+def raise_if_stopped() -> None:
+    """Raise the interrupt of a signal that came inside the block and whose exception something
+    swallowed. Call it only where the job passes while running normally."""
+    if _raised:
+        for repeat in (signal.SIGINT, signal.SIGTERM):  # a redelivery on its way included
+            signal.signal(repeat, signal.SIG_IGN)
+        raise _interrupt(_raised[0])
 
 
 @contextlib.contextmanager
 def stop_on(*signums: int) -> Iterator[None]:
     """Within the block, the first of ``signums`` (SIGINT, SIGTERM) raises KeyboardInterrupt
     or :class:`Terminated` and ignores both from then on; an interrupt raised inside a
-    finaliser is delivered again. Handlers and ``sys.unraisablehook`` are restored after."""
+    finaliser is delivered again, one swallowed elsewhere is raised at the next
+    :func:`raise_if_stopped` or at the block's end. Handlers and ``sys.unraisablehook`` are
+    restored after."""
     previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     for s in signums:
         signal.signal(s, _raise_once)
@@ -52,9 +75,12 @@ def stop_on(*signums: int) -> Iterator[None]:
         again.start()
 
     sys.unraisablehook = redeliver
+    _raised.clear()
     try:
         yield
+        raise_if_stopped()
     finally:
+        _raised.clear()
         sys.unraisablehook = hook
         for s, handler in previous.items():
             signal.signal(s, handler)

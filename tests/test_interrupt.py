@@ -6,7 +6,7 @@ import weakref
 
 import pytest
 
-from gloam_jax.interrupt import Terminated, stop_on
+from gloam_jax.interrupt import Terminated, raise_if_stopped, stop_on
 
 
 class _Thing:
@@ -47,3 +47,25 @@ def test_an_interrupt_raised_inside_a_finaliser_is_delivered_again():
             assert ref() is None  # the finaliser has run, and the job carries on ...
             _wait_for_the_signal()  # ... until the interrupt arrives again
     assert time.monotonic() - start < 4.0
+
+
+@pytest.mark.parametrize("check", [True, False])
+def test_an_interrupt_that_code_swallowed_is_raised_at_the_next_check_or_the_end(check):
+    """Extension code may clear an exception without a trace; the job then stops at its next
+    raise_if_stopped (between trials or steps), else when the block ends."""
+    reached = []
+    with pytest.raises(Terminated):
+        with stop_on(signal.SIGTERM):
+            raise_if_stopped()  # nothing has come: carries on
+            try:
+                signal.raise_signal(signal.SIGTERM)
+                _wait_for_the_signal()
+            except KeyboardInterrupt:
+                pass  # swallowed
+            if check:
+                raise_if_stopped()
+            reached.append(True)
+    assert reached == ([] if check else [True])
+    raise_if_stopped()  # outside a block: nothing to raise
+    with stop_on(signal.SIGTERM):
+        raise_if_stopped()  # a new block starts clean

@@ -34,6 +34,7 @@ from jax.sharding import PartitionSpec as P
 
 from gloam_jax import io
 from gloam_jax.errors import InputError
+from gloam_jax.interrupt import raise_if_stopped
 from gloam_jax.learned import Learned
 from gloam_jax.training import batch
 from gloam_jax.training.config import GradConfig
@@ -208,6 +209,7 @@ def train_grad(
             update_step = update if compiling is None else compiling.result()
         soft = None
         while step < cfg.steps:
+            raise_if_stopped()
             params, state, value, ok = update_step(params, state, scans, pairs, head, step)
             soft = float(value) if bool(ok) else None
             step += 1

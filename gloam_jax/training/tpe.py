@@ -35,7 +35,7 @@ from optuna.trial import TrialState
 
 from gloam_jax import io
 from gloam_jax.errors import InputError
-from gloam_jax.interrupt import stop_on
+from gloam_jax.interrupt import raise_if_stopped, stop_on
 from gloam_jax.learned import MLP, Learned
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.problem import (
@@ -320,6 +320,10 @@ def _objective(problem: Problem) -> Callable[[optuna.Trial], float]:
     return objective
 
 
+def _raise_if_stopped(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+    raise_if_stopped()  # between trials: an interrupt that a trial's code swallowed
+
+
 def run_trials(study: optuna.Study, problem: Problem, callbacks: list | None = None) -> None:
     """Run trials in this process until the study holds ``n_trials`` finished ones (counted
     over all workers: a few more finish when several were running at the end)."""
@@ -328,7 +332,8 @@ def run_trials(study: optuna.Study, problem: Problem, callbacks: list | None = N
         optuna.storages.fail_stale_trials(study)
         if finished(study) < n:
             budget = optuna.study.MaxTrialsCallback(n, states=FINISHED)
-            study.optimize(_objective(problem), callbacks=[budget, *(callbacks or [])])
+            callbacks = [budget, _raise_if_stopped, *(callbacks or [])]
+            study.optimize(_objective(problem), callbacks=callbacks)
 
 
 def _worker_main() -> None:
