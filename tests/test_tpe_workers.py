@@ -244,3 +244,32 @@ def test_sigterm_fails_the_running_trial_and_exits_143(tiny_training, cache, tmp
     trials = _trials(url, "run")
     assert trials[running[0].number].state == TrialState.FAIL
     assert not [t for t in trials if t.state == TrialState.RUNNING]
+
+
+def test_a_swallowed_sigterm_fails_its_trial_and_stops(tiny_training, cache, tmp_path,
+                                                       monkeypatch):  # fmt: skip
+    """Extension code may clear the interrupt without a trace: the trial it ran in still ends
+    failed, and no further trial starts."""
+    from gloam_jax.interrupt import Terminated, stop_on
+    from gloam_jax.training.tpe import open_storage, open_study, run_trials
+
+    problem = setup(_config(tiny_training), tmp_path / "run", cache_dir=cache)
+    loss, calls = problem.training_loss, []
+
+    def swallowing(params):
+        calls.append(params)
+        if len(calls) == 2:
+            try:
+                signal.raise_signal(signal.SIGTERM)
+                time.sleep(5)
+            except KeyboardInterrupt:
+                pass
+        return loss(params)
+
+    monkeypatch.setattr(problem, "training_loss", swallowing)
+    study = open_study(problem, open_storage(problem.config, problem.run_dir), "run", seeded=True)
+    with pytest.raises(Terminated):
+        with stop_on(signal.SIGTERM):
+            run_trials(study, problem)
+    states = [t.state for t in study.get_trials(deepcopy=False)]
+    assert states == [TrialState.COMPLETE, TrialState.FAIL]

@@ -311,6 +311,7 @@ def _objective(problem: Problem) -> Callable[[optuna.Trial], float]:
         values = {n: trial.suggest_float(n, v - bound, v + bound) for n, v in init.items()}
         trial.set_user_attr("worker", f"{host}:{pid}")  # which worker runs it, once it has weights
         train = problem.training_loss(params_from_values(problem, values))
+        raise_if_stopped()  # an interrupt that the evaluation swallowed fails this trial
         trial.set_user_attr("t_err", train.t_err)
         trial.set_user_attr("r_err", train.r_err)
         if not np.isfinite(train.objective):
@@ -321,7 +322,7 @@ def _objective(problem: Problem) -> Callable[[optuna.Trial], float]:
 
 
 def _raise_if_stopped(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
-    raise_if_stopped()  # between trials: an interrupt that a trial's code swallowed
+    raise_if_stopped()  # between trials: an interrupt swallowed while optuna stored one
 
 
 def run_trials(study: optuna.Study, problem: Problem, callbacks: list | None = None) -> None:
