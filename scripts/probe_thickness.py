@@ -50,12 +50,12 @@ def main() -> None:
     args = parser.parse_args()
     config = load_config(args.config, TrainConfig).preprocess
     models = {label: _load(Path(path)) for label, path in (m.split("=", 1) for m in args.model)}
-    result = {}
-    print("| model | " + " | ".join(args.sequences.split(",")) + " |")
-    print("|" + "---|" * (len(args.sequences.split(",")) + 1))
+    names, result = args.sequences.split(","), {}
+    print("| model | " + " | ".join(names) + " |")
+    print("|" + "---|" * (len(names) + 1))
     for label, model in models.items():
         row = {}
-        for name in args.sequences.split(","):
+        for name in names:
             dataset = open_dataset(args.data, name)
             t = np.concatenate([thickness(model, dataset.frame(i)[0], config)
                                 for i in range(0, len(dataset), args.every)])  # fmt: skip

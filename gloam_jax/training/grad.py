@@ -37,7 +37,6 @@ from gloam_jax.errors import InputError
 from gloam_jax.interrupt import raise_if_stopped
 from gloam_jax.learned import Learned
 from gloam_jax.training import batch
-from gloam_jax.training.config import GradConfig
 from gloam_jax.training.problem import (
     Clock,
     Problem,
@@ -49,16 +48,16 @@ from gloam_jax.training.problem import (
 CHECKPOINT = "checkpoint.npz"
 
 
-def _rate(cfg: GradConfig, rate: float) -> float | optax.Schedule:
+def _rate(rate: float, warmup_steps: int) -> float | optax.Schedule:
     """``rate``, or step k's ``rate * min(1, k / warmup_steps)`` (k = 1, 2, ...)."""
-    if cfg.warmup_steps == 0:
+    if warmup_steps == 0:
         return rate
-    return lambda count: rate * jnp.minimum(1.0, (count + 1) / cfg.warmup_steps)
+    return lambda count: rate * jnp.minimum(1.0, (count + 1) / warmup_steps)
 
 
 def _optimizer(problem: Problem) -> optax.GradientTransformation:
     cfg = problem.config.grad
-    adam = optax.adam(_rate(cfg, cfg.learning_rate))
+    adam = optax.adam(_rate(cfg.learning_rate, cfg.warmup_steps))
     if cfg.head_learning_rate is not None:  # the backbone's last layer at its own rate
 
         def labels(p: Learned) -> Learned:
@@ -66,7 +65,8 @@ def _optimizer(problem: Problem) -> optax.GradientTransformation:
             return mlps._replace(head=jax.tree_util.tree_map(lambda _: "head", p.head))
 
         adam = optax.multi_transform(
-            {"mlp": adam, "head": optax.adam(_rate(cfg, cfg.head_learning_rate))}, labels
+            {"mlp": adam, "head": optax.adam(_rate(cfg.head_learning_rate, cfg.warmup_steps))},
+            labels,
         )
     return optax.chain(optax.clip_by_global_norm(cfg.clip_norm), adam)
 
