@@ -131,11 +131,18 @@ def raw_eps_values(values: Array, eps: float = PLANE_EPS) -> Array:
     return jnp.maximum(values, eps)
 
 
-def learned_values(eigenvalues: Array, eps: float | Array) -> Array:
+def learned_values(
+    eigenvalues: Array, eps: float | Array, max_thickness: float | Array | None = None
+) -> Array:
     """Algorithm 1's eigenvalues from the Eigenvalue Estimation MLP's raw output (..., 3):
     sorted ascending (the smallest goes along the normal), clamped below at ``eps`` > 0 (no
-    rank drop; before the scaling, so all-zero outputs stay finite), L2-normalised."""
+    rank drop; before the scaling, so all-zero outputs stay finite), L2-normalised.
+
+    With ``max_thickness``, the smallest is then held at or below that fraction of the middle
+    one: planes no thicker than it (GICP's plane is ``PLANE_EPS`` thick)."""
     values = jnp.maximum(_sort3(eigenvalues), eps)
+    if max_thickness is not None:
+        values = values.at[..., 0].set(jnp.minimum(values[..., 0], max_thickness * values[..., 1]))
     return values / jnp.sqrt(geo.dot(values, values))[..., None]
 
 
@@ -151,13 +158,19 @@ def raw_eps(covariances: Array, eps: float = PLANE_EPS) -> Array:
     return recompose(vectors, raw_eps_values(values, eps))
 
 
-def learned(covariances: Array, eigenvalues: Array, eps: float | Array) -> Array:
+def learned(
+    covariances: Array,
+    eigenvalues: Array,
+    eps: float | Array,
+    max_thickness: float | Array | None = None,
+) -> Array:
     """Algorithm 1 of Generalized LOAM: k-NN eigenvectors of ``covariances`` (N, 3, 3), MLP
     eigenvalues (N, 3) through :func:`learned_values` -> (N, 3, 3).
     Differentiable with respect to ``eigenvalues`` (and ``eps``), not the covariances.
     """
     _, vectors = eigendecompose(covariances)
-    return recompose(vectors, learned_values(eigenvalues, eps).astype(vectors.dtype))
+    values = learned_values(eigenvalues, eps, max_thickness)
+    return recompose(vectors, values.astype(vectors.dtype))
 
 
 def _sort3(x: Array) -> Array:

@@ -110,15 +110,18 @@ class Head(NamedTuple):
 class Learned(NamedTuple):
     """The learned parts a registration uses, as a pytree; None keeps plain GICP's step.
 
-    ``eps`` is Algorithm 1's fixed floor, not a trained weight: :func:`attributes` stops its
-    gradient, so a trainer may carry a whole Learned as its parameters. ``head`` is set only
-    while training fine-tunes the backbone's last layer: the batch then recomputes the scans'
-    PCA features from it (:mod:`gloam_jax.training.head`); odometry never reads it."""
+    ``eps`` is Algorithm 1's fixed floor and ``max_thickness`` an optional bound on its
+    planes (:func:`gloam_jax.covariance.learned_values`), not trained weights:
+    :func:`attributes` stops their gradients, so a trainer may carry a whole Learned as its
+    parameters. ``head`` is set only while training fine-tunes the backbone's last layer: the
+    batch then recomputes the scans' PCA features from it (:mod:`gloam_jax.training.head`);
+    odometry never reads it."""
 
     conversion: FeatureConversionMLP | None = None  # data association in [xyz, f] space
     eigenvalue: EigenvalueEstimationMLP | None = None  # covariances by Algorithm 1
     eps: float | Array = DEFAULT_EPS
     head: Head | None = None
+    max_thickness: float | Array | None = None  # at least eps, so that GICP's plane fits
 
     def as_gicp(self) -> Learned:
         """These parts set to register as plain GICP with the plane regulariser: constant
@@ -173,8 +176,8 @@ def attributes(
         covs = cov.recompose(vectors, cov.EIGENVALUE_RULES[regularizer](values))
     else:
         raw = learned.eigenvalue(pca_features.astype(vectors.dtype))
-        eps = jax.lax.stop_gradient(learned.eps)
-        covs = cov.recompose(vectors, cov.learned_values(raw, eps).astype(vectors.dtype))
+        eps, cap = jax.lax.stop_gradient((learned.eps, learned.max_thickness))
+        covs = cov.recompose(vectors, cov.learned_values(raw, eps, cap).astype(vectors.dtype))
     if learned.conversion is None:
         return covs, jnp.zeros((*vectors.shape[:-2], 0), vectors.dtype)
     return covs, learned.conversion(pca_features.astype(vectors.dtype))

@@ -54,6 +54,13 @@ class GLOAMModel:
     backbone_options: dict[str, Any] = field(default_factory=dict)
     version: int = MODEL_VERSION
     provenance: dict[str, Any] = field(default_factory=dict)  # how it was made (training)
+    # Algorithm 1's planes at most this thick (smallest over middle eigenvalue; None: unbounded).
+    max_thickness: float | None = None
+
+    def __post_init__(self) -> None:
+        problem = _thickness_problem(self.max_thickness, self.eps)
+        if problem:
+            raise InputError(None, problem)
 
     def pca_features(self, raw: np.ndarray | Array) -> np.ndarray | Array:
         """Backbone features (N, D) -> PCA features (N, 6), NumPy or JAX."""
@@ -80,8 +87,21 @@ class GLOAMModel:
 
     @property
     def learned(self) -> Learned:
-        """Both MLPs and eps, as the registration takes them."""
-        return Learned(self.conversion, self.eigenvalue, self.eps)
+        """Both MLPs, eps and the thickness bound, as the registration takes them."""
+        return Learned(self.conversion, self.eigenvalue, self.eps, max_thickness=self.max_thickness)
+
+
+def _thickness_problem(max_thickness: object, eps: float) -> str | None:
+    """Why ``max_thickness`` is not a usable bound for a model with ``eps``, or None."""
+    if max_thickness is None:
+        return None
+    if isinstance(max_thickness, bool) or not isinstance(max_thickness, int | float):
+        return f"max_thickness must be a number or null, got {max_thickness!r}"
+    if not eps <= max_thickness <= 1:
+        # Below eps, GICP's own plane (eps, 1, 1) would not fit: the gicp start and the
+        # fall-back to GICP would register otherwise.
+        return f"max_thickness must be in [eps = {eps:g}, 1], got {max_thickness:g}"
+    return None
 
 
 INITS = ("random", "gicp")
@@ -176,6 +196,8 @@ def save_model(path: str | os.PathLike[str], model: GLOAMModel) -> None:
         "backbone": model.backbone_name,
         "backbone_options": model.backbone_options,
         "provenance": model.provenance,
+        # Written only when set, so that a file without the bound reads as it always did.
+        **({} if model.max_thickness is None else {"max_thickness": model.max_thickness}),
     }
     # A 0-d unicode array, not a pickled object: the file loads with allow_pickle=False.
     write_npz(path, metadata=np.array(json.dumps(metadata)), **_arrays(model))
@@ -264,6 +286,10 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
     provenance = metadata.get("provenance", {})
     if not isinstance(provenance, dict):
         raise InputError(p, "metadata 'provenance' must be an object")
+    max_thickness = metadata.get("max_thickness")
+    problem = _thickness_problem(max_thickness, eps)
+    if problem:
+        raise InputError(p, problem)
 
     def mlp(cls: type[MLP], prefix: str) -> MLP:
         return cls(*(jnp.asarray(arrays[f"{prefix}_{k}"]) for k in MLP._fields))
@@ -277,4 +303,5 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
         backbone_options=options,
         version=MODEL_VERSION,
         provenance=provenance,
+        max_thickness=None if max_thickness is None else float(max_thickness),
     )

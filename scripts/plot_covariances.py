@@ -109,7 +109,7 @@ def main() -> None:
     panels = {
         "raw k-NN covariance": raw,
         "plane (eps, 1, 1) (GICP)": cov.plane(raw),
-        label: cov.learned(raw, eigenvalues, model.eps),
+        label: cov.learned(raw, eigenvalues, model.eps, model.max_thickness),
     }
 
     sphere = unit_sphere()

@@ -33,7 +33,9 @@ def thickness(model, scan: np.ndarray, config) -> np.ndarray:
     """Smallest over middle learned eigenvalue (M,) of one raw scan's voxel centres."""
     features = model.backbone()(scan)
     _, pca_features, _, _ = preprocess_scan(scan, None, config, pca=model.pca, features=features)
-    values = np.asarray(cov.learned_values(model.eigenvalue(pca_features), model.eps))
+    values = np.asarray(
+        cov.learned_values(model.eigenvalue(pca_features), model.eps, model.max_thickness)
+    )
     return values[:, 0] / values[:, 1]
 
 

@@ -35,7 +35,7 @@ def test_a_fine_tuning_runs_checkpoint_is_refused_in_one_line(tmp_path):
 
 def test_plane_eps_rows_are_gicp_with_thicker_planes(tiny_training, tmp_path, monkeypatch):
     """GICP's own eps as a constant eigenvalue MLP gives GICP's errors; a thicker plane
-    changes them."""
+    changes them. A thickness bound above the start's planes changes nothing."""
     import json
     import sys
 
@@ -45,18 +45,20 @@ def test_plane_eps_rows_are_gicp_with_thicker_planes(tiny_training, tmp_path, mo
     monkeypatch.setattr(sys, "argv", [
         "eval_batch.py", "--config", str(config), "--sequences", "00",
         "--model", f"start={tiny_training.start}", "--plane-eps", "0.001,0.03",
-        "--cache", str(tmp_path / "cache"), "--out", str(out),
+        "--max-thickness", "0.01", "--cache", str(tmp_path / "cache"), "--out", str(out),
     ])  # fmt: skip
     eval_batch.main()
     rows = json.loads(out.read_text())
     gicp = rows["GICP"]["mean"]
     assert rows["GICP, plane eps 0.001"]["mean"] == pytest.approx(gicp, rel=1e-4)
     assert abs(rows["GICP, plane eps 0.03"]["mean"] - gicp) > 1e-3 * gicp
+    # The start's planes are GICP's, far thinner than the bound: the bounded row is the start's.
+    assert rows["start, planes <= 0.01"]["mean"] == pytest.approx(rows["start"]["mean"], rel=1e-6)
 
 
 def test_thickness_probe_and_the_thickness_cap(tiny_training):
     """probe_thickness.py: the GICP start's planes are eps thick on every centre; weights that
-    output (0.05, 1, 1) everywhere are 0.05 thick, 0.01 under eval_batch's cap of 0.01."""
+    output (0.05, 1, 1) everywhere are 0.05 thick, 0.01 under a max_thickness of 0.01."""
     from gloam_jax.datasets import open_dataset
     from gloam_jax.learned import plane_output
     from gloam_jax.preprocess import PreprocessConfig
@@ -70,8 +72,9 @@ def test_thickness_probe_and_the_thickness_cap(tiny_training):
     np.testing.assert_allclose(start, model.eps, rtol=1e-5)
     thick = dataclasses.replace(model, eigenvalue=model.eigenvalue.constant(plane_output(0.05)))
     np.testing.assert_allclose(probe.thickness(thick, scan, config), 0.05, rtol=1e-5)
-    # eval_batch --max-thickness: planes thinned to the cap, thinner ones left as they are.
-    capped = dataclasses.replace(thick, eigenvalue=eval_batch.capped(thick.eigenvalue, 0.01))
+    # A model's max_thickness (eval_batch --max-thickness): planes thinned to the bound,
+    # thinner ones left as they are; the probe measures what the model registers with.
+    capped = dataclasses.replace(thick, max_thickness=0.01)
     np.testing.assert_allclose(probe.thickness(capped, scan, config), 0.01, rtol=1e-5)
-    kept = dataclasses.replace(model, eigenvalue=eval_batch.capped(model.eigenvalue, 0.01))
+    kept = dataclasses.replace(model, max_thickness=0.01)
     np.testing.assert_allclose(probe.thickness(kept, scan, config), model.eps, rtol=1e-5)

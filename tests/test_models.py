@@ -83,6 +83,42 @@ def test_algorithm1_gradient_matches_finite_differences():
         assert grad_fn(clamped)[0, 0] == 0.0
 
 
+def test_max_thickness_bounds_the_planes_and_keeps_the_gradient():
+    rng = np.random.default_rng(2)
+    with jax.enable_x64(True):
+        e = jnp.asarray(rng.uniform(0.05, 2.0, (64, 3)))
+        cap = 0.1
+        free = np.asarray(cov.learned_values(e, 1e-3))
+        bounded = np.asarray(cov.learned_values(e, 1e-3, cap))
+        thin = free[:, 0] / free[:, 1] <= cap
+        assert 0 < thin.sum() < len(thin)  # both cases occur
+        # Thin planes are untouched; thick ones are brought to the bound, in-plane shape kept.
+        np.testing.assert_allclose(bounded[thin], free[thin], rtol=1e-12)
+        np.testing.assert_allclose(bounded[~thin, 0] / bounded[~thin, 1], cap, rtol=1e-12)
+        np.testing.assert_allclose(
+            bounded[~thin, 1] / bounded[~thin, 2], free[~thin, 1] / free[~thin, 2], rtol=1e-12
+        )
+        np.testing.assert_allclose(np.linalg.norm(bounded, axis=1), 1.0, rtol=1e-12)
+        # GICP's plane (eps, 1, 1) fits under a bound of eps.
+        plane = cov.learned_values(jnp.array([1e-3, 1.0, 1.0]), 1e-3, 1e-3)
+        np.testing.assert_allclose(plane, np.array([1e-3, 1, 1]) / np.sqrt(2 + 1e-6), rtol=1e-12)
+
+        # A bounded plane's gradient reaches its middle eigenvalue, which sets its thickness.
+        W = jnp.asarray(rng.normal(size=(64, 3)))
+
+        @jax.jit
+        def loss(e):
+            return jnp.sum(W * cov.learned_values(e, 1e-3, cap))
+
+        grad = np.asarray(jax.grad(loss)(e))
+        h = 1e-6
+        numeric = np.zeros(e.shape)
+        for idx in np.ndindex(*e.shape):
+            step = jnp.zeros(e.shape).at[idx].set(h)
+            numeric[idx] = (loss(e + step) - loss(e - step)) / (2 * h)
+        np.testing.assert_allclose(grad, numeric, rtol=1e-5, atol=1e-8)
+
+
 def test_mlps_per_point_and_batched():
     key = jax.random.PRNGKey(0)
     conv, eig = FeatureConversionMLP.init(key), EigenvalueEstimationMLP.init(key)
@@ -181,6 +217,27 @@ def test_gicp_init_starts_at_the_plane_regulariser(model):
     assert 0 < converted.std(axis=0).max() < 0.03
     with pytest.raises(InputError, match="unknown init 'plane'"):
         init_model(jax.random.PRNGKey(4), m.pca, init="plane")
+
+
+def test_max_thickness_round_trip_and_bad_values(tmp_path, model):
+    _, m = model
+    assert m.max_thickness is None and m.learned.max_thickness is None
+    save_model(tmp_path / "free.npz", m)
+    assert load_model(tmp_path / "free.npz").max_thickness is None
+    with np.load(tmp_path / "free.npz") as z:  # a file without the bound reads as before it
+        assert "max_thickness" not in str(z["metadata"])
+    save_model(tmp_path / "thin.npz", dataclasses.replace(m, max_thickness=0.005))
+    loaded = load_model(tmp_path / "thin.npz")
+    assert loaded.max_thickness == 0.005 and loaded.learned.max_thickness == 0.005
+    with pytest.raises(InputError, match=r"max_thickness must be in \[eps = 0.002, 1\], got 0.001"):
+        dataclasses.replace(m, max_thickness=0.001)  # m.eps is 0.002: its plane would not fit
+    # A file edited by hand: the error names it.
+    with np.load(tmp_path / "thin.npz") as z:
+        arrays = dict(z)
+    arrays["metadata"] = np.array(str(arrays["metadata"]).replace("0.005", '"thin"'))
+    np.savez(tmp_path / "edited.npz", **arrays)
+    with pytest.raises(InputError, match="edited.npz: max_thickness must be a number or null"):
+        load_model(tmp_path / "edited.npz")
 
 
 def test_provenance_round_trip(tmp_path, model):

@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 from gloam_jax.cli import app
 from gloam_jax.cli.common import cache_dir
 from gloam_jax.config import dump_config
+from gloam_jax.errors import InputError
 from gloam_jax.learned import Learned
 from gloam_jax.models import load_model
 from gloam_jax.preprocess import PreprocessConfig
@@ -127,9 +128,32 @@ def test_grad_runs_and_resumes_to_the_same_weights(tiny_training, tmp_path):
     assert load_model(tmp_path / "b" / "model.npz").provenance["steps"] == 2
 
 
-def test_grad_source_points_must_be_positive():
-    from gloam_jax.errors import InputError
+def test_a_thickness_bound_holds_in_training_and_in_the_exported_model(tiny_training, tmp_path):
+    """``max_thickness`` reaches the training registrations: there a plane ten times thicker
+    than the bound registers as the plane at the bound. The exported model keeps it."""
+    from gloam_jax.learned import plane_output
 
+    cap = 0.004
+    cfg = tiny_training.config(mode="grad", max_thickness=cap)
+    problem = setup(cfg, tmp_path / "run", cache_dir=tmp_path / "cache")
+    assert problem.model.max_thickness == cap
+    assert float(problem.init_params.max_thickness) == pytest.approx(cap)
+    mlp = problem.init_params.eigenvalue
+
+    def plane(thickness: float) -> Learned:
+        return problem.init_params._replace(eigenvalue=mlp.constant(plane_output(thickness)))
+
+    thick, at_cap = problem.training_loss(plane(10 * cap)), problem.training_loss(plane(cap))
+    free = problem.training_loss(plane(10 * cap)._replace(max_thickness=None))
+    np.testing.assert_allclose(thick.t_err, at_cap.t_err, rtol=1e-6)
+    assert abs(free.t_err - thick.t_err) > 1e-3 * thick.t_err  # the bound changed something
+    exported = problem.export(plane(10 * cap), tmp_path / "model.npz", {})
+    assert exported.max_thickness == cap and load_model(tmp_path / "model.npz").max_thickness == cap
+    with pytest.raises(InputError, match=r"max_thickness must be in \(0, 1\], not 0"):
+        tiny_training.config(max_thickness=0.0)
+
+
+def test_grad_source_points_must_be_positive():
     with pytest.raises(InputError, match="source_points must be >= 1"):
         GradConfig(source_points=0)
     with pytest.raises(InputError, match="warmup_steps must be >= 0"):

@@ -112,6 +112,10 @@ class TrainConfig:
     # GICP's by this fraction, else plain GICP ships (training.problem.choose). The gicp start
     # scores within 0.5 % of GICP on validation (its association features differ by ~1 cm).
     min_gain: float = 0.01
+    # Algorithm 1's planes at most this thick (smallest over middle eigenvalue, in [eps, 1]),
+    # in training and in the exported model; None: the start model's bound (none unless
+    # init_model has one). GICP's plane is 0.001 thick.
+    max_thickness: float | None = None
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     batch: BatchConfig = field(default_factory=BatchConfig)
     tpe: TPEConfig = field(default_factory=TPEConfig)
@@ -127,6 +131,8 @@ class TrainConfig:
             raise InputError(None, f"worse_penalty must be >= 0, not {self.worse_penalty}")
         if not 0 <= self.min_gain < 1:
             raise InputError(None, f"min_gain must be in [0, 1), not {self.min_gain}")
+        if self.max_thickness is not None and not 0 < self.max_thickness <= 1:
+            raise InputError(None, f"max_thickness must be in (0, 1], not {self.max_thickness}")
         object.__setattr__(self, "data", as_roots(self.data, "data"))
         if self.validation_data is not None:
             object.__setattr__(

@@ -78,6 +78,8 @@ def trainable_params(model: GLOAMModel, method: str, head: bool = False) -> Lear
     with ``head``, the net backbone's last layer (:mod:`gloam_jax.training.head`)."""
     start = model.learned.for_method(method)
     start = start._replace(eps=jnp.asarray(model.eps, jnp.float32))
+    if model.max_thickness is not None:
+        start = start._replace(max_thickness=jnp.asarray(model.max_thickness, jnp.float32))
     return start._replace(head=initial_head(model.backbone())) if head else start
 
 
@@ -224,6 +226,13 @@ def _check_run_dir(config: TrainConfig, run_dir: Path) -> bool:
     return True
 
 
+def bounded(model: GLOAMModel, config: TrainConfig) -> GLOAMModel:
+    """The start ``model`` with the config's ``max_thickness``, where it sets one."""
+    if config.max_thickness is None:
+        return model
+    return dataclasses.replace(model, max_thickness=config.max_thickness)
+
+
 def setup(
     config: TrainConfig,
     run_dir: str | Path,
@@ -252,7 +261,7 @@ def setup(
     if resumed and start.is_file():
         model = load_model(start)
     elif config.init_model is not None:
-        model = load_model(config.init_model)
+        model = bounded(load_model(config.init_model), config)
         save_model(start, model)
     else:
         options = {"weights": config.backbone_weights} if config.backbone == "net" else {}
@@ -266,6 +275,7 @@ def setup(
             init=config.init,
             progress=progress,
         )
+        model = bounded(model, config)
         save_model(start, model)
     backbone = model.backbone()
     head = _fine_tunes(config, model)
