@@ -9,7 +9,8 @@ smallest eigenvalue over the middle one, is eps = 0.001. Algorithm 1's learned e
 each point its own. For every ``--every``-th scan of each world this prints the median
 thickness of the voxel centres and the share of them thicker than ``--thick`` (the plane
 thickness at which GICP's batch error on the val worlds starts to move: docs/results.md, "What
-the learned covariances trade").
+the learned covariances trade"), then the median in-plane ratio, the middle eigenvalue over the
+largest (GICP: 1, a disc; near 0, a line).
 """
 
 from __future__ import annotations
@@ -29,14 +30,13 @@ from gloam_jax.preprocess import preprocess_scan
 from gloam_jax.training.config import TrainConfig
 
 
-def thickness(model, scan: np.ndarray, config) -> np.ndarray:
-    """Smallest over middle learned eigenvalue (M,) of one raw scan's voxel centres."""
+def learned_values(model, scan: np.ndarray, config) -> np.ndarray:
+    """Algorithm 1's ascending eigenvalues (M, 3) at one raw scan's voxel centres."""
     features = model.backbone()(scan)
     _, pca_features, _, _ = preprocess_scan(scan, None, config, pca=model.pca, features=features)
-    values = np.asarray(
+    return np.asarray(
         cov.learned_values(model.eigenvalue(pca_features), model.eps, model.max_thickness)
     )
-    return values[:, 0] / values[:, 1]
 
 
 def main() -> None:
@@ -59,17 +59,20 @@ def main() -> None:
         row = {}
         for name in names:
             dataset = open_dataset(args.data, name)
-            t = np.concatenate([thickness(model, dataset.frame(i)[0], config)
+            v = np.concatenate([learned_values(model, dataset.frame(i)[0], config)
                                 for i in range(0, len(dataset), args.every)])  # fmt: skip
+            t = v[:, 0] / v[:, 1]
             row[name] = {
                 "median": float(np.median(t)),
                 "thick_share": float(np.mean(t > args.thick)),
+                "in_plane_median": float(np.median(v[:, 1] / v[:, 2])),
             }
         result[label] = row
         print(
             f"| {label} | "
             + " | ".join(
-                f"{r['median']:.4f} ({100 * r['thick_share']:.0f} %)" for r in row.values()
+                f"{r['median']:.4f} ({100 * r['thick_share']:.0f} %), {r['in_plane_median']:.2f}"
+                for r in row.values()
             )
             + " |"
         )

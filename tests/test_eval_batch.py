@@ -67,14 +67,21 @@ def test_thickness_probe_and_the_thickness_cap(tiny_training):
     model = tiny_training.model
     scan = open_dataset(tiny_training.config().data, "00").frame(0)[0]
     config = PreprocessConfig()
-    start = probe.thickness(model, scan, config)
+
+    def thickness(m):
+        values = probe.learned_values(m, scan, config)
+        return values[:, 0] / values[:, 1]
+
+    start = thickness(model)
     assert len(start) > 100
     np.testing.assert_allclose(start, model.eps, rtol=1e-5)
+    disc = probe.learned_values(model, scan, config)  # GICP's plane is round within itself
+    np.testing.assert_allclose(disc[:, 1] / disc[:, 2], 1.0, rtol=1e-5)
     thick = dataclasses.replace(model, eigenvalue=model.eigenvalue.constant(plane_output(0.05)))
-    np.testing.assert_allclose(probe.thickness(thick, scan, config), 0.05, rtol=1e-5)
+    np.testing.assert_allclose(thickness(thick), 0.05, rtol=1e-5)
     # A model's max_thickness (eval_batch --max-thickness): planes thinned to the bound,
     # thinner ones left as they are; the probe measures what the model registers with.
     capped = dataclasses.replace(thick, max_thickness=0.01)
-    np.testing.assert_allclose(probe.thickness(capped, scan, config), 0.01, rtol=1e-5)
+    np.testing.assert_allclose(thickness(capped), 0.01, rtol=1e-5)
     kept = dataclasses.replace(model, max_thickness=0.01)
-    np.testing.assert_allclose(probe.thickness(kept, scan, config), model.eps, rtol=1e-5)
+    np.testing.assert_allclose(thickness(kept), model.eps, rtol=1e-5)
