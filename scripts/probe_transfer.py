@@ -29,12 +29,20 @@ from gloam_jax.config import load_config
 from gloam_jax.io import write_atomic
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.grad import CHECKPOINT, load_checkpoint
-from gloam_jax.training.problem import setup
+from gloam_jax.training.problem import Problem, setup
 
 
 def signed(start, update, signs):
     """``start + signs * update``, leaf by leaf (None leaves, the untrained parts, stay)."""
     return jax.tree_util.tree_map(lambda s, d, k: s + k * d, start, update, signs)
+
+
+def load_run(run: Path, cache: Path | None) -> Problem:
+    """The prepared problem of a gradient run of the MLPs alone (its start, its windows)."""
+    config = load_config(run / "config.yaml", TrainConfig)
+    if config.mode != "grad" or config.grad.head_learning_rate is not None:
+        raise SystemExit(f"{run}: not a gradient run of the MLPs alone")
+    return setup(config, run, cache_dir=cache)
 
 
 def main() -> None:
@@ -46,12 +54,10 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, help="prepared windows (default: the run's)")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args()
-    config = load_config(args.run / "config.yaml", TrainConfig)
-    if config.mode != "grad" or config.grad.head_learning_rate is not None:
-        raise SystemExit(f"{args.run}: not a gradient run of the MLPs alone")
     if not (args.run / CHECKPOINT).is_file():
         raise SystemExit(f"{args.run}: no {CHECKPOINT}")
-    problem = setup(config, args.run, cache_dir=args.cache)
+    problem = load_run(args.run, args.cache)
+    config = problem.config
     start = problem.init_params
     trees, meta = load_checkpoint(args.run / CHECKPOINT, {"params": start})
     update = jax.tree_util.tree_map(lambda a, b: a - b, trees["params"], start)

@@ -47,3 +47,28 @@ def test_probe_refuses_a_run_without_a_checkpoint(tiny_training, tmp_path, monke
     monkeypatch.setattr(sys, "argv", ["probe_transfer.py", "--run", str(run)])
     with pytest.raises(SystemExit, match="no checkpoint.npz"):
         probe.main()
+
+
+def test_window_gradients_average_to_the_training_loss_gradient(tiny_training, tmp_path):
+    """probe_gradients.py: the per-window gradients of the error ratios, averaged, are the
+    gradient of the gicp_ratio loss without its penalty (the loss tested against finite
+    differences in test_training.py)."""
+    import jax
+    import numpy as np
+
+    from gloam_jax.training import batch
+
+    gradients = import_script("probe_gradients")
+    cfg = tiny_training.config(mode="grad", objective="gicp_ratio")
+    problem = setup(cfg, tmp_path / "run", cache_dir=tmp_path / "cache")
+    rows = gradients.window_gradients(problem, problem.data, problem.reference)
+    assert rows.shape == (len(problem.data.windows), 86) and np.all(np.isfinite(rows))
+    assert np.abs(rows).max() > 0
+    mesh = batch.pair_mesh()
+    scans, pairs = batch.place(problem.data.scans, problem.data.pairs, mesh)
+    placed = batch.BatchData(scans, pairs, problem.data.windows, problem.data.regularizer)
+    g = jax.grad(batch.loss)(problem.init_params, placed, cfg.batch, mesh, problem.reference, 0.0)
+    mlps = jax.tree_util.tree_leaves([g.conversion, g.eigenvalue])
+    whole = np.concatenate([np.ravel(x) for x in mlps])
+    # float32 through the LM solves, summed in another order: to 1e-3 of the gradient's size.
+    assert np.linalg.norm(rows.mean(axis=0) - whole) <= 1e-3 * np.linalg.norm(whole)
