@@ -36,22 +36,19 @@ def window_gradients(problem, data: batch.BatchData, reference: np.ndarray) -> n
     """d(t_err_w / reference_w) / d(MLP weights) at the start, one row per window (W, n)."""
     mesh = batch.pair_mesh()
     scans, pairs = batch.place(data.scans, data.pairs, mesh)
-    head = data.head
-    config, windows, regularizer = problem.config.batch, data.windows, data.regularizer
+    placed = batch.BatchData(scans, pairs, data.windows, data.regularizer, data.head)
     ref = jnp.asarray(reference, jnp.float32)
 
     @jax.jit
     def gradient(params: Learned, w: jax.Array) -> Learned:
         def ratio(p: Learned) -> jax.Array:
-            placed = batch.with_head(p, scans, head)
-            T_rel = batch.register_sharded(p, placed, pairs, config, regularizer, mesh)
-            return (batch.window_errors(T_rel, windows)[0] / ref)[w]
+            return (batch.window_t_err(p, placed, problem.config.batch, mesh) / ref)[w]
 
         return jax.grad(ratio)(params)
 
     start = problem.init_params
     rows = []
-    for w in range(len(windows)):
+    for w in range(len(data.windows)):
         g = gradient(start, jnp.int32(w))
         mlps = [m for m in (g.conversion, g.eigenvalue) if m is not None]
         rows.append(np.concatenate([np.ravel(x) for x in jax.tree_util.tree_leaves(mlps)]))

@@ -278,6 +278,16 @@ def window_errors(T_rel: Array, windows: list[Window]) -> tuple[Array, Array]:
     return jnp.stack(t_err), jnp.stack(r_err)
 
 
+def window_t_err(
+    learned: Learned, data: BatchData, config: BatchConfig, mesh: Mesh | None = None
+) -> Array:
+    """Each window's translational relative error (W,) (a fraction) with ``learned``: the
+    terms of :func:`loss`. The pairs split over ``mesh`` (see :func:`register_sharded`)."""
+    scans = with_head(learned, data.scans, data.head)
+    T_rel = register_sharded(learned, scans, data.pairs, config, data.regularizer, mesh)
+    return window_errors(T_rel, data.windows)[0]
+
+
 def loss(
     learned: Learned,
     data: BatchData,
@@ -290,9 +300,7 @@ def loss(
     fraction, Eq. (8)'s loss), or with plain GICP's per-window errors ``reference`` (W,) the
     ``gicp_ratio`` of :mod:`gloam_jax.training.objective`. The pairs split over ``mesh`` (see
     :func:`register_sharded`), the same loss to float rounding."""
-    scans = with_head(learned, data.scans, data.head)
-    T_rel = register_sharded(learned, scans, data.pairs, config, data.regularizer, mesh)
-    return objective(window_errors(T_rel, data.windows)[0], reference, worse_penalty)
+    return objective(window_t_err(learned, data, config, mesh), reference, worse_penalty)
 
 
 class Evaluation(NamedTuple):

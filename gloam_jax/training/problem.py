@@ -260,21 +260,21 @@ def setup(
     # A start left by a setup that failed (no config.yaml yet) may come from other settings.
     if resumed and start.is_file():
         model = load_model(start)
-    elif config.init_model is not None:
-        model = bounded(load_model(config.init_model), config)
-        save_model(start, model)
     else:
-        options = {"weights": config.backbone_weights} if config.backbone == "net" else {}
-        extractor = get_backbone(config.backbone, **options)
-        model = fit_initial_model(
-            config.training_roots,
-            config.sequences,
-            extractor,
-            every=config.pca_every,
-            seed=config.seed,
-            init=config.init,
-            progress=progress,
-        )
+        if config.init_model is not None:
+            model = load_model(config.init_model)
+        else:
+            options = {"weights": config.backbone_weights} if config.backbone == "net" else {}
+            extractor = get_backbone(config.backbone, **options)
+            model = fit_initial_model(
+                config.training_roots,
+                config.sequences,
+                extractor,
+                every=config.pca_every,
+                seed=config.seed,
+                init=config.init,
+                progress=progress,
+            )
         model = bounded(model, config)
         save_model(start, model)
     backbone = model.backbone()
