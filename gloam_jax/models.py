@@ -189,12 +189,19 @@ def _arrays(model: GLOAMModel) -> dict[str, np.ndarray]:
 
 def save_model(path: str | os.PathLike[str], model: GLOAMModel) -> None:
     """Write the model as one ``.npz`` (arrays and a JSON ``metadata`` entry), atomically."""
+    options = model.backbone_options
+    weights = options.get("weights")
+    if isinstance(weights, str) and Path(weights).is_file():
+        if Path(weights).resolve().parent == Path(path).resolve().parent:
+            # A network beside the file stays named relative to it (load_model resolves it), so
+            # a rewritten file (a test score appended) still loads from any working directory.
+            options = {**options, "weights": Path(weights).name}
     metadata = {
         "format": MODEL_FORMAT,
         "version": model.version,
         "eps": model.eps,
         "backbone": model.backbone_name,
-        "backbone_options": model.backbone_options,
+        "backbone_options": options,
         "provenance": model.provenance,
         # Written only when set, so that a file without the bound reads as it always did.
         **({} if model.max_thickness is None else {"max_thickness": model.max_thickness}),

@@ -1,6 +1,8 @@
 """Fine-tuning the net backbone's last layer through the odometry loss (gradient mode): the
 features it recomputes are the inference path's, training moves the layer, the export loads."""
 
+import shutil
+
 import jax
 import numpy as np
 import pytest
@@ -67,6 +69,11 @@ def test_recomputed_features_are_the_backbones_and_training_exports_the_layer(
     # features that training computed for the trained layer.
     model = load_model(run / "model.npz")
     assert model.backbone_options["weights"] == str(run / "net.npz")
+    # Rewritten in place (as make_tables appends a test score), the file still names the
+    # network beside it, so a copy of the folder loads anywhere.
+    save_model(run / "model.npz", model)
+    moved = shutil.copytree(run, tmp_path / "moved")
+    assert load_model(moved / "model.npz").backbone_options["weights"] == str(moved / "net.npz")
     assert trained.backbone().net.decode.weight.shape == net.decode.weight.shape
     head = problem.init_params.head._replace(weight=net.decode.weight, bias=net.decode.bias)
     tuned = np.asarray(head_features(head, problem.data.head, shape))
