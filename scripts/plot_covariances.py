@@ -9,9 +9,9 @@ fitted on this scan), labelled as such. Each ellipsoid is scaled so that its lon
 semi-axis has the same length: the panels compare shapes, not sizes (the three
 regularisers live on different scales). Colour: red = line, green = plane, blue = sphere.
 
-docs/img/covariances.png is frame 0 of the protocol's KITTI 00 window
-(``scripts/simulate_protocol.py``) with the shipped model
-(``--model gloam_jax/data/gloam_default.npz``) and the other defaults.
+docs/img/covariances.png is frame 0 of test world 301 (``scripts/simulate_protocol.py --split
+test``, simulation seed 0: ``data/protocol2/sequences/301/velodyne/000000.bin``) with the shipped
+model (``--model gloam_jax/data/gloam_default.npz``) and the other defaults.
 """
 
 from __future__ import annotations

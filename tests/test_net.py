@@ -21,7 +21,7 @@ from gloam_jax.features.net import (
     run_scan,
     save_net,
 )
-from gloam_jax.models import init_model, save_model
+from gloam_jax.models import init_model, save_model, shipped_model_path
 from gloam_jax.training.segmentation import (
     LabelledScan,
     SegmentationConfig,
@@ -230,6 +230,10 @@ def test_shipped_network_loads_and_says_how_it_was_trained():
     model = load_model(load_config("gloam_net").model)
     assert model.backbone_name == "net" and model.backbone().dim == model.pca.input_dim
     assert model.provenance["mode"] == "grad" and model.provenance["steps"] > 0
+    # Chosen on the protocol's val worlds; its fine-tuned network ships beside it.
+    assert model.provenance["selected_on"] == "validation"
+    assert model.provenance["selected_value"] < model.provenance["validation_gicp"]
+    assert model.backbone_options["weights"] == str(shipped_model_path("net").with_name("gloam_net_backbone.npz"))
     # The geometry-only network, by name; a training run picks it with backbone_weights.
     blind = get_backbone("net", weights="no-intensity")
     assert not blind.net.config.intensity and blind.provenance["test"]["miou"] > 0.5
