@@ -229,3 +229,60 @@ def test_every_shipped_config_loads():
         config = load_config(name, TrainConfig if name.startswith("train") else OdometryConfig)
         if name.endswith("_warmup"):
             assert config.grad.warmup_steps == 20 and config.grad.steps == 60
+
+
+def test_model_info_says_how_a_model_was_made(tmp_path):
+    import dataclasses
+
+    import jax
+
+    from gloam_jax.features import fit_pca
+    from gloam_jax.models import init_model, save_model
+
+    pca = fit_pca(np.random.default_rng(0).normal(size=(100, 8)))
+    bare = init_model(jax.random.PRNGKey(0), pca)
+    score = {
+        "method": "gloam",
+        "worlds": ["301", "302", "303"],
+        "sim_seeds": [0, 1],
+        "commit": "abc1234 (+ uncommitted changes)",
+        "date": "2026-12-05T00:00:00+00:00",
+        "t_err": {"mean": 0.2822, "std": 0.0231},
+        "r_err": {"mean": 0.987, "std": 0.079},
+    }
+    provenance = {
+        "mode": "grad",
+        "method": "gloam",
+        "seed": 2,
+        "steps": 60,
+        "config": {"data": "data/w", "sequences": ["101", "102"]},
+        "objective": "gicp_ratio",
+        "selected_on": "validation",
+        "selected_value": 0.8198,
+        "validation_gicp": 1.0035,
+        "test_scores": [score],
+    }
+    save_model(tmp_path / "m.npz", dataclasses.replace(bare, provenance=provenance))
+    save_model(tmp_path / "bare.npz", bare)
+
+    shown = runner.invoke(app, ["model-info", str(tmp_path / "m.npz")], env={"COLUMNS": "120"})
+    assert shown.exit_code == 0, shown.output
+    for text in (
+        "seed 2, 60 steps",
+        "sequences 101, 102",
+        "chosen on validation: gicp_ratio 0.8198",
+        "(plain GICP 1.0035)",
+        "worlds 301-303 (3)",
+        "0.282 ± 0.023",
+        "(abc1234, 2026-12-05)",
+    ):
+        assert text in shown.output, text
+    as_json = runner.invoke(app, ["model-info", str(tmp_path / "m.npz"), "--json"])
+    assert json.loads(as_json.output)["provenance"] == provenance
+    untrained = runner.invoke(app, ["model-info", str(tmp_path / "bare.npz")])
+    assert untrained.exit_code == 0 and "untrained (not written by gloam train)" in untrained.output
+    # The shipped model was chosen on validation and scored on test.
+    shipped = runner.invoke(app, ["model-info"], env={"COLUMNS": "120"})
+    assert "chosen on validation" in shipped.output and "301-310 (10)" in shipped.output
+    missing = runner.invoke(app, ["model-info", str(tmp_path / "none.npz")])
+    assert missing.exit_code == 2 and "none.npz: model file not found" in missing.output

@@ -1,14 +1,14 @@
 """scripts/make_tables.py --split: aggregation over seeds, once-only test scoring, provenance."""
 
+import dataclasses
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 from repo_scripts import import_script
 
-from gloam_jax.models import load_model, shipped_model_path
+from gloam_jax.models import load_model, save_model, shipped_model_path
 from gloam_jax.simulate import simulate
 
 # One worker runs this module (pytest-xdist --dist loadgroup): its module fixture is built once.
@@ -81,9 +81,16 @@ def tiny_test_world(tmp_path_factory):
     return root
 
 
+def _unscored_model(path: Path) -> Path:
+    """The shipped model's weights in a file with no test score yet."""
+    model = load_model(shipped_model_path())
+    provenance = {k: v for k, v in model.provenance.items() if k != "test_scores"}
+    save_model(path, dataclasses.replace(model, provenance=provenance))
+    return path
+
+
 def test_test_split_scores_once_and_records_provenance(tiny_test_world, tmp_path, monkeypatch):
-    model_file = tmp_path / "model.npz"
-    shutil.copy(shipped_model_path(), model_file)
+    model_file = _unscored_model(tmp_path / "model.npz")
     before = load_model(model_file)
     out = tmp_path / "out"
     argv = ["--split", "test", "--sequences", "301", "--data", str(tiny_test_world)]
@@ -122,8 +129,7 @@ def test_test_split_scores_once_and_records_provenance(tiny_test_world, tmp_path
 
 def test_val_split_leaves_the_model_file_alone(tmp_path, monkeypatch):
     root = _fake_root(tmp_path / "s0", 0, ("201",))
-    model_file = tmp_path / "model.npz"
-    shutil.copy(shipped_model_path(), model_file)
+    model_file = _unscored_model(tmp_path / "model.npz")
     monkeypatch.setattr(make_tables, "run", lambda *a: {"t_err": 0.3, "r_err": 0.5})
     argv = ["--split", "val", "--sequences", "201", "--data", str(root)]
     for _ in range(2):  # validation may be scored as often as selection needs

@@ -233,7 +233,8 @@ def test_shipped_network_loads_and_says_how_it_was_trained():
     # Chosen on the protocol's val worlds; its fine-tuned network ships beside it.
     assert model.provenance["selected_on"] == "validation"
     assert model.provenance["selected_value"] < model.provenance["validation_gicp"]
-    assert model.backbone_options["weights"] == str(shipped_model_path("net").with_name("gloam_net_backbone.npz"))
+    beside = shipped_model_path("net").with_name("gloam_net_backbone.npz")
+    assert model.backbone_options["weights"] == str(beside)
     # The geometry-only network, by name; a training run picks it with backbone_weights.
     blind = get_backbone("net", weights="no-intensity")
     assert not blind.net.config.intensity and blind.provenance["test"]["miou"] > 0.5

@@ -1,5 +1,5 @@
-"""The ``gloam`` command line: simulate, run, eval, demo, init-model, train, train-backbone,
-segment."""
+"""The ``gloam`` command line: simulate, run, eval, demo, init-model, model-info, train,
+train-backbone, segment, config."""
 
 from __future__ import annotations
 

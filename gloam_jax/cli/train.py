@@ -73,6 +73,69 @@ def init_model(
 
 
 @app.command(
+    name="model-info",
+    epilog="Examples:\n\n  gloam model-info\n\n  gloam model-info net\n\n"
+    "  gloam model-info runs/grad/model.npz --json",
+)
+@user_errors
+def model_info(
+    model: Annotated[
+        str, typer.Argument(help="A model file, or a shipped model's name (default, net).")
+    ] = "default",
+    json_out: Annotated[
+        bool, typer.Option("--json", help="Print the file's metadata as JSON instead.")
+    ] = False,
+) -> None:
+    """How a model file was made: backbone, training, selection and every test score."""
+    import json
+
+    from gloam_jax.models import load_model
+
+    def say(line: str) -> None:  # one line each, however narrow the terminal: easy to grep
+        console.print(line, soft_wrap=True, markup=False, highlight=False)
+
+    m = load_model(model)
+    prov = m.provenance
+    if json_out:
+        info = {"backbone": m.backbone_name, "backbone_options": m.backbone_options,
+                "eps": m.eps, "max_thickness": m.max_thickness, "provenance": prov}  # fmt: skip
+        console.print_json(json.dumps(info, default=str))
+        return
+    trained = prov.get("config", {})
+    say(
+        f"{model}: backbone {m.backbone_name} {m.backbone_options or ''}, PCA keeps "
+        f"{100 * float(sum(m.pca.explained_variance_ratio)):.1f} % of the variance, eps {m.eps:g}"
+        + ("" if m.max_thickness is None else f", max_thickness {m.max_thickness:g}")
+    )
+    if "mode" not in prov:
+        say(f"untrained (not written by gloam train): {prov or 'no provenance'}")
+        return
+    say(
+        f"trained: {prov.get('mode')} ({prov.get('method')}), seed {prov.get('seed')}, "
+        + (f"{prov['steps']} steps" if "steps" in prov else f"{prov.get('trials')} trials")
+        + f", data {trained.get('data')}, "
+        f"sequences {', '.join(map(str, trained.get('sequences', [])))}"
+    )
+    if "selected_on" in prov:
+        versus = prov.get("validation_gicp")
+        say(
+            f"chosen on {prov['selected_on']}: {prov.get('objective')} {prov['selected_value']:.4f}"
+            + ("" if versus is None else f" (plain GICP {versus:.4f})")
+        )
+    scores = prov.get("test_scores", [])
+    if not scores:
+        say("test split: not scored")
+    for s in scores:
+        worlds = s["worlds"]
+        say(
+            f"test ({s['method']}): worlds {worlds[0]}-{worlds[-1]} ({len(worlds)}), simulation "
+            f"seeds {','.join(map(str, s['sim_seeds']))}: t_err {s['t_err']['mean']:.3f} ± "
+            f"{s['t_err']['std']:.3f} %, r_err {s['r_err']['mean']:.3f} ± "
+            f"{s['r_err']['std']:.3f} deg/100 m ({s['commit'].split()[0]}, {s['date'][:10]})"
+        )
+
+
+@app.command(
     epilog=(
         "Examples:\n\n"
         "  gloam train --config configs/train_grad.yaml --out runs/grad\n\n"
