@@ -30,6 +30,7 @@ from jax import Array
 from gloam_jax import covariance as cov
 from gloam_jax import geometry as geo
 from gloam_jax.errors import InputError
+from gloam_jax.features.novelty import FeatureNovelty
 
 FEATURE_DIM = 6  # PCA output, the MLPs' input
 HIDDEN_DIM = 4
@@ -115,13 +116,15 @@ class Learned(NamedTuple):
     :func:`attributes` stops their gradients, so a trainer may carry a whole Learned as its
     parameters. ``head`` is set only while training fine-tunes the backbone's last layer: the
     batch then recomputes the scans' PCA features from it (:mod:`gloam_jax.training.head`);
-    odometry never reads it."""
+    odometry never reads it. ``novelty``, when set, blends both learned parts with GICP's
+    step where a point's features are unlike the training features (also gradient-stopped)."""
 
     conversion: FeatureConversionMLP | None = None  # data association in [xyz, f] space
     eigenvalue: EigenvalueEstimationMLP | None = None  # covariances by Algorithm 1
     eps: float | Array = DEFAULT_EPS
     head: Head | None = None
     max_thickness: float | Array | None = None  # at least eps, so that GICP's plane fits
+    novelty: FeatureNovelty | None = None
 
     def as_gicp(self) -> Learned:
         """These parts set to register as plain GICP with the plane regulariser: constant
@@ -170,17 +173,25 @@ def attributes(
 
     Plain GICP regularises the eigenvalues (``regularizer``) and has no features (F = 0); a
     learned eigenvalue MLP replaces the regulariser (Algorithm 1), a conversion MLP gives the
-    features of data association (F = 3).
+    features of data association (F = 3). With ``learned.novelty``, each point's learned
+    eigenvalues and features are weighted by its trust (1 on familiar features) against GICP's
+    plane (eps, 1, 1) (unit norm, as Algorithm 1's) and zero features (xyz association).
     """
+    f = pca_features.astype(vectors.dtype)
+    eps, cap, novelty = jax.lax.stop_gradient((learned.eps, learned.max_thickness, learned.novelty))
+    trust = None if novelty is None else novelty.trust(f)[..., None]
     if learned.eigenvalue is None:
         covs = cov.recompose(vectors, cov.EIGENVALUE_RULES[regularizer](values))
     else:
-        raw = learned.eigenvalue(pca_features.astype(vectors.dtype))
-        eps, cap = jax.lax.stop_gradient((learned.eps, learned.max_thickness))
-        covs = cov.recompose(vectors, cov.learned_values(raw, eps, cap).astype(vectors.dtype))
+        new = cov.learned_values(learned.eigenvalue(f), eps, cap).astype(vectors.dtype)
+        if trust is not None:
+            plane = cov.learned_values(plane_output(eps), eps, cap).astype(vectors.dtype)
+            new = trust * new + (1 - trust) * plane
+        covs = cov.recompose(vectors, new)
     if learned.conversion is None:
         return covs, jnp.zeros((*vectors.shape[:-2], 0), vectors.dtype)
-    return covs, learned.conversion(pca_features.astype(vectors.dtype))
+    features = learned.conversion(f)
+    return covs, features if trust is None else trust * features
 
 
 @partial(jax.jit, static_argnames=("regularizer",))

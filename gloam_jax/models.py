@@ -23,6 +23,7 @@ from jax import Array
 
 from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone, get_backbone
+from gloam_jax.features.novelty import FeatureNovelty
 from gloam_jax.features.pca import FeaturePCA
 from gloam_jax.io import write_npz
 from gloam_jax.learned import (
@@ -56,6 +57,8 @@ class GLOAMModel:
     provenance: dict[str, Any] = field(default_factory=dict)  # how it was made (training)
     # Algorithm 1's planes at most this thick (smallest over middle eigenvalue; None: unbounded).
     max_thickness: float | None = None
+    # Where the learned parts fall back to GICP's (None: everywhere learned).
+    novelty: FeatureNovelty | None = None
 
     def __post_init__(self) -> None:
         problem = _thickness_problem(self.max_thickness, self.eps)
@@ -87,8 +90,11 @@ class GLOAMModel:
 
     @property
     def learned(self) -> Learned:
-        """Both MLPs, eps and the thickness bound, as the registration takes them."""
-        return Learned(self.conversion, self.eigenvalue, self.eps, max_thickness=self.max_thickness)
+        """Both MLPs, eps, the thickness bound and the novelty, as the registration takes them."""
+        return Learned(
+            self.conversion, self.eigenvalue, self.eps,
+            max_thickness=self.max_thickness, novelty=self.novelty,
+        )  # fmt: skip
 
 
 def _thickness_problem(max_thickness: object, eps: float) -> str | None:
@@ -184,6 +190,9 @@ def _arrays(model: GLOAMModel) -> dict[str, np.ndarray]:
     out = {f"pca_{k}": np.asarray(v, np.float64) for k, v in model.pca._asdict().items()}
     for prefix, mlp in (("conversion", model.conversion), ("eigenvalue", model.eigenvalue)):
         out.update({f"{prefix}_{k}": np.asarray(v, np.float32) for k, v in mlp._asdict().items()})
+    if model.novelty is not None:
+        novelty = model.novelty._asdict().items()
+        out.update({f"novelty_{k}": np.asarray(v, np.float64) for k, v in novelty})
     return out
 
 
@@ -311,4 +320,23 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
         version=MODEL_VERSION,
         provenance=provenance,
         max_thickness=None if max_thickness is None else float(max_thickness),
+        novelty=_novelty(p, arrays),
     )
+
+
+def _novelty(p: Path, arrays: dict[str, np.ndarray]) -> FeatureNovelty | None:
+    """The file's feature novelty (None where it has none); InputError when it is malformed."""
+    names = [f"novelty_{k}" for k in FeatureNovelty._fields]
+    if not any(n in arrays for n in names):
+        return None
+    shapes = dict(zip(names, [(FEATURE_DIM,), (FEATURE_DIM, FEATURE_DIM), (), ()], strict=True))
+    for name, shape in shapes.items():
+        if name not in arrays or arrays[name].shape != shape:
+            got = "none" if name not in arrays else f"shape {arrays[name].shape}"
+            raise InputError(p, f"'{name}' must have shape {shape}, found {got}")
+        if arrays[name].dtype.kind != "f" or not np.all(np.isfinite(arrays[name])):
+            raise InputError(p, f"'{name}' must be finite floats")
+    novelty = FeatureNovelty(*(arrays[n] for n in names))
+    if not 0 < float(novelty.inner) < float(novelty.outer):
+        raise InputError(p, "novelty needs 0 < inner < outer")
+    return novelty._replace(inner=float(novelty.inner), outer=float(novelty.outer))

@@ -13,7 +13,9 @@ from gloam_jax import io
 from gloam_jax.cli import app
 from gloam_jax.errors import InputError
 from gloam_jax.features import fit_pca, get_backbone
+from gloam_jax.features.novelty import fit_novelty
 from gloam_jax.gicp import GICPConfig
+from gloam_jax.learned import Learned
 from gloam_jax.models import init_model, learned_parts, save_model
 from gloam_jax.odometry import Odometry, OdometryConfig
 from gloam_jax.registration import align_prepared, build_cloud
@@ -85,6 +87,32 @@ def test_the_gicp_start_registers_as_plain_gicp(model):
     np.testing.assert_allclose(
         _register(start, "gloam", T_TRUE), _register(None, "gicp", T_TRUE), atol=1e-5
     )
+
+
+def test_novel_features_everywhere_register_as_gicp_familiar_ones_as_the_model(model):
+    # The novelty fall-back (gloam_jax.features.novelty): trust 0 on every point gives GICP's
+    # planes (up to their common scale) and xyz association; trust 1 changes nothing.
+    points, features = _scene(0)
+    everywhere = fit_novelty(features * 1e-3)  # the scene's features lie far beyond it
+    nowhere = fit_novelty(features)._replace(inner=1e9, outer=2e9)
+
+    def cloud(m):
+        parts = Learned() if m is None else learned_parts(m, "gloam")
+        return build_cloud(points, 10, pca_features=features, learned=parts)
+
+    gicp, learned = cloud(None), cloud(model)
+    gated = cloud(dataclasses.replace(model, novelty=everywhere))
+    scale = np.sqrt(2 + model.eps**2)  # Algorithm 1's unit norm of (eps, 1, 1)
+    np.testing.assert_allclose(gated.covs * scale, gicp.covs, atol=1e-5)
+    assert np.abs(learned.covs * scale - gicp.covs).max() > 0.1  # the MLPs alone differ
+    np.testing.assert_array_equal(gated.features, 0.0)
+    same = cloud(dataclasses.replace(model, novelty=nowhere))
+    np.testing.assert_array_equal(same.covs, learned.covs)
+    np.testing.assert_array_equal(same.features, learned.features)
+    np.testing.assert_allclose(
+        _register(dataclasses.replace(model, novelty=everywhere), "gloam", T_TRUE),
+        _register(None, "gicp", T_TRUE), atol=1e-5,
+    )  # fmt: skip
 
 
 def test_a_fallback_model_runs_gicps_own_path_bit_for_bit(sim_sequence, model):

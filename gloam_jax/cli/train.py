@@ -21,6 +21,8 @@ from gloam_jax.cli.common import (
 from gloam_jax.errors import InputError
 from gloam_jax.interrupt import Terminated, stop_on
 
+CACHE_HELP_PREPARED = "Folder for prepared training windows (shared by runs)."
+
 
 @app.command(
     name="init-model",
@@ -107,6 +109,13 @@ def model_info(
         f"{100 * float(sum(m.pca.explained_variance_ratio)):.1f} % of the variance, eps {m.eps:g}"
         + ("" if m.max_thickness is None else f", max_thickness {m.max_thickness:g}")
     )
+    if m.novelty is not None:
+        fit = prov.get("novelty", {})
+        say(
+            f"novelty: learned parts trusted to d2 {float(m.novelty.inner):.2f}, GICP's from "
+            f"{float(m.novelty.outer):.2f} (quantile {fit.get('quantile')} of "
+            f"{fit.get('points')} training points)"
+        )
     if "mode" not in prov:
         say(f"untrained (not written by gloam train): {prov or 'no provenance'}")
         return
@@ -133,6 +142,44 @@ def model_info(
             f"{s['t_err']['std']:.3f} %, r_err {s['r_err']['mean']:.3f} ± "
             f"{s['r_err']['std']:.3f} deg/100 m ({s['commit'].split()[0]}, {s['date'][:10]})"
         )
+
+
+@app.command(
+    epilog="Example:\n\n  gloam novelty runs/grad/model.npz --config configs/train_protocol.yaml "
+    "--out runs/grad/model_novelty.npz"
+)
+@user_errors
+def novelty(
+    model: Annotated[str, typer.Argument(help="A trained model file (or default, net).")],
+    config: Annotated[Path, typer.Option(help="The training config whose train worlds it saw.")],
+    out: Annotated[Path, typer.Option(help="Model file to write (.npz).")],
+    quantile: Annotated[
+        float, typer.Option(min=0.0, max=1.0, help="Training points' d2 quantile still trusted.")
+    ] = 0.99,
+    ramp: Annotated[
+        float, typer.Option(min=1.0, help="Trust reaches 0 at this multiple of that d2.")
+    ] = 2.0,
+    cache: Annotated[Path | None, typer.Option(help=CACHE_HELP_PREPARED)] = None,
+) -> None:
+    """Let a model fall back to GICP where a point's features are unlike its training ones."""
+    from gloam_jax.config import load_config
+    from gloam_jax.models import load_model, save_model
+    from gloam_jax.training.config import TrainConfig
+    from gloam_jax.training.novelty import fit_model_novelty
+
+    cfg = load_config(config, TrainConfig)
+    with progress_bar() as bar:
+        fitted = fit_model_novelty(
+            load_model(model), cfg, quantile=quantile, ramp=ramp, cache_dir=cache,
+            progress=Tasks(bar),
+        )  # fmt: skip
+    save_model(out, fitted)
+    record = fitted.provenance["novelty"]
+    console.print(
+        f"novelty fitted on {record['points']} training points: trust falls from d2 "
+        f"{float(fitted.novelty.inner):.2f} to 0 at {float(fitted.novelty.outer):.2f}; {out}",
+        highlight=False,
+    )
 
 
 @app.command(
@@ -171,9 +218,7 @@ def train(
     learning_rate: Annotated[
         float | None, typer.Option(min=0.0, help="Adam's learning rate (overrides).")
     ] = None,
-    cache: Annotated[
-        Path | None, typer.Option(help="Folder for prepared training windows (shared by runs).")
-    ] = None,
+    cache: Annotated[Path | None, typer.Option(help=CACHE_HELP_PREPARED)] = None,
     storage: Annotated[
         str | None,
         typer.Option(

@@ -267,6 +267,37 @@ def open_sequences(
     return [io.KittiSequence(r, name) for r in roots for name in names]
 
 
+def prepare_window(
+    seq: io.KittiSequence,
+    preprocess: PreprocessConfig,
+    config: BatchConfig,
+    pca: FeaturePCA | None = None,
+    backbone: Backbone | None = None,
+    *,
+    frames: int | None = None,
+    cache_dir: str | Path | None = None,
+    progress: Callable[[str, int, int], None] | None = None,
+) -> tuple[PreparedWindow, Path | None]:
+    """The prepared first ``frames`` scans (all by default) of ``seq`` (:func:`prepare_scans`),
+    read from or saved to ``cache_dir`` (atomically) when given; and where its pairs are cached
+    (None without a cache)."""
+    name = seq.sequence
+    window = range(0, len(seq) if frames is None else min(frames, len(seq)))
+    scan_path = pair_path = None
+    if cache_dir is not None:
+        scan_key, pair_key = _cache_keys(seq, window, preprocess, config, pca, backbone)
+        scan_path = Path(cache_dir) / f"scans_{name}_{scan_key}.npz"
+        pair_path = Path(cache_dir) / f"pairs_{name}_{pair_key}.npz"
+        scan_path.parent.mkdir(parents=True, exist_ok=True)
+    if scan_path is not None and scan_path.is_file():
+        return _load_scans(scan_path), pair_path
+    step = None if progress is None else partial(progress, name, len(window))
+    w = prepare_scans(seq, window, preprocess, pca, backbone, step)
+    if scan_path is not None:
+        _save_scans(scan_path, w)
+    return w, pair_path
+
+
 def load_windows(
     root: str | Path | Sequence[str | Path],
     sequences: Sequence[str],
@@ -285,21 +316,10 @@ def load_windows(
     reused by later runs with the same settings and PCA."""
     windows = []
     for seq in open_sequences(root, sequences):
-        name = seq.sequence
-        window = range(0, len(seq) if frames is None else min(frames, len(seq)))
-        scan_path = pair_path = None
-        if cache_dir is not None:
-            scan_key, pair_key = _cache_keys(seq, window, preprocess, config, pca, backbone)
-            scan_path = Path(cache_dir) / f"scans_{name}_{scan_key}.npz"
-            pair_path = Path(cache_dir) / f"pairs_{name}_{pair_key}.npz"
-            scan_path.parent.mkdir(parents=True, exist_ok=True)
-        if scan_path is not None and scan_path.is_file():
-            w = _load_scans(scan_path)
-        else:
-            step = None if progress is None else partial(progress, name, len(window))
-            w = prepare_scans(seq, window, preprocess, pca, backbone, step)
-            if scan_path is not None:
-                _save_scans(scan_path, w)
+        w, pair_path = prepare_window(
+            seq, preprocess, config, pca, backbone,
+            frames=frames, cache_dir=cache_dir, progress=progress,
+        )  # fmt: skip
         if pair_path is not None and pair_path.is_file():
             pairs = _load_pairs(pair_path)
         else:
