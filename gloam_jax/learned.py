@@ -116,8 +116,8 @@ class Learned(NamedTuple):
     :func:`attributes` stops their gradients, so a trainer may carry a whole Learned as its
     parameters. ``head`` is set only while training fine-tunes the backbone's last layer: the
     batch then recomputes the scans' PCA features from it (:mod:`gloam_jax.training.head`);
-    odometry never reads it. ``novelty``, when set, blends both learned parts with GICP's
-    step where a point's features are unlike the training features (also gradient-stopped)."""
+    odometry never reads it. ``novelty``, when set, clamps the MLPs' input features to the
+    region of the training features (also gradient-stopped)."""
 
     conversion: FeatureConversionMLP | None = None  # data association in [xyz, f] space
     eigenvalue: EigenvalueEstimationMLP | None = None  # covariances by Algorithm 1
@@ -173,25 +173,21 @@ def attributes(
 
     Plain GICP regularises the eigenvalues (``regularizer``) and has no features (F = 0); a
     learned eigenvalue MLP replaces the regulariser (Algorithm 1), a conversion MLP gives the
-    features of data association (F = 3). With ``learned.novelty``, each point's learned
-    eigenvalues and features are weighted by its trust (1 on familiar features) against GICP's
-    plane (eps, 1, 1) (unit norm, as Algorithm 1's) and zero features (xyz association).
+    features of data association (F = 3). With ``learned.novelty``, both MLPs see features
+    clamped to the region they were trained on (:meth:`FeatureNovelty.clamp`).
     """
     f = pca_features.astype(vectors.dtype)
     eps, cap, novelty = jax.lax.stop_gradient((learned.eps, learned.max_thickness, learned.novelty))
-    trust = None if novelty is None else novelty.trust(f)[..., None]
+    if novelty is not None:
+        f = novelty.clamp(f)
     if learned.eigenvalue is None:
         covs = cov.recompose(vectors, cov.EIGENVALUE_RULES[regularizer](values))
     else:
-        new = cov.learned_values(learned.eigenvalue(f), eps, cap).astype(vectors.dtype)
-        if trust is not None:
-            plane = cov.learned_values(plane_output(eps), eps, cap).astype(vectors.dtype)
-            new = trust * new + (1 - trust) * plane
-        covs = cov.recompose(vectors, new)
+        raw = learned.eigenvalue(f)
+        covs = cov.recompose(vectors, cov.learned_values(raw, eps, cap).astype(vectors.dtype))
     if learned.conversion is None:
         return covs, jnp.zeros((*vectors.shape[:-2], 0), vectors.dtype)
-    features = learned.conversion(f)
-    return covs, features if trust is None else trust * features
+    return covs, learned.conversion(f)
 
 
 @partial(jax.jit, static_argnames=("regularizer",))

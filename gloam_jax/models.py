@@ -57,7 +57,7 @@ class GLOAMModel:
     provenance: dict[str, Any] = field(default_factory=dict)  # how it was made (training)
     # Algorithm 1's planes at most this thick (smallest over middle eigenvalue; None: unbounded).
     max_thickness: float | None = None
-    # Where the learned parts fall back to GICP's (None: everywhere learned).
+    # The training features' region, which the MLPs' inputs are clamped to (None: unclamped).
     novelty: FeatureNovelty | None = None
 
     def __post_init__(self) -> None:
@@ -329,7 +329,7 @@ def _novelty(p: Path, arrays: dict[str, np.ndarray]) -> FeatureNovelty | None:
     names = [f"novelty_{k}" for k in FeatureNovelty._fields]
     if not any(n in arrays for n in names):
         return None
-    shapes = dict(zip(names, [(FEATURE_DIM,), (FEATURE_DIM, FEATURE_DIM), (), ()], strict=True))
+    shapes = dict(zip(names, [(FEATURE_DIM,), (FEATURE_DIM, FEATURE_DIM), ()], strict=True))
     for name, shape in shapes.items():
         if name not in arrays or arrays[name].shape != shape:
             got = "none" if name not in arrays else f"shape {arrays[name].shape}"
@@ -337,6 +337,6 @@ def _novelty(p: Path, arrays: dict[str, np.ndarray]) -> FeatureNovelty | None:
         if arrays[name].dtype.kind != "f" or not np.all(np.isfinite(arrays[name])):
             raise InputError(p, f"'{name}' must be finite floats")
     novelty = FeatureNovelty(*(arrays[n] for n in names))
-    if not 0 < float(novelty.inner) < float(novelty.outer):
-        raise InputError(p, "novelty needs 0 < inner < outer")
-    return novelty._replace(inner=float(novelty.inner), outer=float(novelty.outer))
+    if not float(novelty.radius2) > 0:
+        raise InputError(p, "'novelty_radius2' must be positive")
+    return novelty._replace(radius2=float(novelty.radius2))

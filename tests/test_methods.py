@@ -15,7 +15,6 @@ from gloam_jax.errors import InputError
 from gloam_jax.features import fit_pca, get_backbone
 from gloam_jax.features.novelty import fit_novelty
 from gloam_jax.gicp import GICPConfig
-from gloam_jax.learned import Learned
 from gloam_jax.models import init_model, learned_parts, save_model
 from gloam_jax.odometry import Odometry, OdometryConfig
 from gloam_jax.registration import align_prepared, build_cloud
@@ -89,30 +88,26 @@ def test_the_gicp_start_registers_as_plain_gicp(model):
     )
 
 
-def test_novel_features_everywhere_register_as_gicp_familiar_ones_as_the_model(model):
-    # The novelty fall-back (gloam_jax.features.novelty): trust 0 on every point gives GICP's
-    # planes (up to their common scale) and xyz association; trust 1 changes nothing.
+def test_clamped_features_register_as_the_model_on_the_clamped_features(model):
+    # The novelty (gloam_jax.features.novelty) changes what the MLPs see, nothing else: a
+    # region that holds every point changes nothing, one that holds none registers as the
+    # model given the clamped features.
     points, features = _scene(0)
-    everywhere = fit_novelty(features * 1e-3)  # the scene's features lie far beyond it
-    nowhere = fit_novelty(features)._replace(inner=1e9, outer=2e9)
+    tight = fit_novelty(features * 1e-3)  # the scene's features lie far beyond it
+    loose = fit_novelty(features)._replace(radius2=1e9)
 
-    def cloud(m):
-        parts = Learned() if m is None else learned_parts(m, "gloam")
-        return build_cloud(points, 10, pca_features=features, learned=parts)
+    def cloud(m, f=features):
+        return build_cloud(points, 10, pca_features=f, learned=learned_parts(m, "gloam"))
 
-    gicp, learned = cloud(None), cloud(model)
-    gated = cloud(dataclasses.replace(model, novelty=everywhere))
-    scale = np.sqrt(2 + model.eps**2)  # Algorithm 1's unit norm of (eps, 1, 1)
-    np.testing.assert_allclose(gated.covs * scale, gicp.covs, atol=1e-5)
-    assert np.abs(learned.covs * scale - gicp.covs).max() > 0.1  # the MLPs alone differ
-    np.testing.assert_array_equal(gated.features, 0.0)
-    same = cloud(dataclasses.replace(model, novelty=nowhere))
+    learned = cloud(model)
+    clamped = np.asarray(tight.clamp(jnp.asarray(features, jnp.float32)))
+    gated, expected = cloud(dataclasses.replace(model, novelty=tight)), cloud(model, clamped)
+    np.testing.assert_allclose(gated.covs, expected.covs, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(gated.features, expected.features, rtol=1e-4, atol=1e-6)
+    assert np.abs(gated.covs - learned.covs).max() > 1e-2
+    same = cloud(dataclasses.replace(model, novelty=loose))
     np.testing.assert_array_equal(same.covs, learned.covs)
     np.testing.assert_array_equal(same.features, learned.features)
-    np.testing.assert_allclose(
-        _register(dataclasses.replace(model, novelty=everywhere), "gloam", T_TRUE),
-        _register(None, "gicp", T_TRUE), atol=1e-5,
-    )  # fmt: skip
 
 
 def test_a_fallback_model_runs_gicps_own_path_bit_for_bit(sim_sequence, model):

@@ -1,4 +1,4 @@
-"""Feature novelty: where the learned parts fall back to GICP's."""
+"""Feature novelty: the MLPs' inputs clamped to the region of the training features."""
 
 import dataclasses
 
@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from gloam_jax import covariance as cov
 from gloam_jax.cli import app
 from gloam_jax.config import dump_config
 from gloam_jax.errors import InputError
@@ -17,34 +16,31 @@ from gloam_jax.learned import EigenvalueEstimationMLP, FeatureConversionMLP, Lea
 from gloam_jax.models import load_model, save_model
 
 
-def test_fit_on_gaussian_features_gives_the_chi2_quantile_and_a_linear_ramp():
+def test_fit_on_gaussian_features_gives_the_chi2_quantile_and_clamps_onto_it():
     rng = np.random.default_rng(0)
     A = rng.normal(size=(6, 6))
     x = rng.normal(size=(200_000, 6)) @ A + 3.0
-    nov = fit_novelty(x, quantile=0.99, ramp=2.0)
-    # chi-square with 6 degrees of freedom: 99 % quantile 16.81
-    assert nov.inner == pytest.approx(16.81, rel=0.03)
-    assert nov.outer == pytest.approx(2 * nov.inner)
+    nov = fit_novelty(x, quantile=0.99)
+    assert nov.radius2 == pytest.approx(16.81, rel=0.03)  # chi-square, 6 dof: 99 % quantile
     # d2 is the Mahalanobis distance under the fitted covariance
     L = np.linalg.cholesky(np.cov(x, rowvar=False))
-    z = np.array([[1.0, -2.0, 0.5, 0.0, 3.0, 1.0]])
-    f = x.mean(axis=0) + z @ L.T
-    assert float(nov.squared_distance(jnp.asarray(f))[0]) == pytest.approx(np.sum(z**2), rel=1e-3)
-    # trust: 1 inside, 0 beyond outer, halfway in the middle of the ramp
-    unit = L[:, 0] / 1.0  # one standard deviation along a principal axis: d2 = 1 per unit
-    points = x.mean(axis=0) + np.outer(np.sqrt([1.0, nov.inner, 1.5 * nov.inner, 3 * nov.inner]),
-                                       unit)  # fmt: skip
-    t = np.asarray(nov.trust(jnp.asarray(points)))
-    np.testing.assert_allclose(t, [1.0, 1.0, 0.5, 0.0], atol=2e-3)
+    mean = x.mean(axis=0)
+    z = np.array([[1.0, -2.0, 0.5, 0.0, 3.0, 1.0], [10.0, 0.0, -5.0, 2.0, 0.0, 4.0]])
+    f = jnp.asarray(mean + z @ L.T)
+    np.testing.assert_allclose(nov.squared_distance(f), np.sum(z**2, axis=1), rtol=1e-3)
+    # inside: unchanged; beyond: on the boundary, along the same ray from the mean
+    g = np.asarray(nov.clamp(f))
+    np.testing.assert_allclose(g[0], f[0], rtol=1e-12)
+    assert float(nov.squared_distance(jnp.asarray(g[1]))) == pytest.approx(nov.radius2, rel=1e-6)
+    ray, moved = np.asarray(f[1]) - mean, g[1] - mean
+    np.testing.assert_allclose(moved / np.linalg.norm(moved), ray / np.linalg.norm(ray), atol=1e-6)
 
 
-def test_fit_rejects_too_few_rows_and_bad_settings():
+def test_fit_rejects_too_few_rows_and_a_bad_quantile():
     with pytest.raises(InputError, match="more finite rows than columns"):
         fit_novelty(np.ones((3, 6)))
     with pytest.raises(InputError, match="quantile"):
         fit_novelty(np.random.default_rng(0).normal(size=(50, 6)), quantile=1.5)
-    with pytest.raises(InputError, match="ramp"):
-        fit_novelty(np.random.default_rng(0).normal(size=(50, 6)), ramp=1.0)
 
 
 def _parts(key=0):
@@ -52,32 +48,28 @@ def _parts(key=0):
     return Learned(FeatureConversionMLP.init(k1), EigenvalueEstimationMLP.init(k2))
 
 
-def test_trusted_points_keep_the_learned_parts_novel_ones_get_gicps():
+def test_the_mlps_see_familiar_features_as_they_are_and_novel_ones_clamped():
     rng = np.random.default_rng(1)
     nov = fit_novelty(rng.normal(size=(5000, 6)))
-    far = np.full(6, 10.0)  # d2 about 600, far beyond outer
-    f = jnp.asarray(np.stack([np.zeros(6), far]), jnp.float32)
+    f = jnp.asarray(np.stack([np.zeros(6), np.full(6, 10.0)]), jnp.float32)  # d2 0 and ~600
     vectors = jnp.asarray(np.stack([np.eye(3), np.linalg.qr(rng.normal(size=(3, 3)))[0]]),
                           jnp.float32)  # fmt: skip
     values = jnp.asarray([[0.01, 0.5, 1.0], [0.02, 0.3, 0.9]], jnp.float32)
     parts = _parts()
     covs, feats = attributes(values, vectors, f, parts, "plane")
     gated_covs, gated_feats = attributes(values, vectors, f, parts._replace(novelty=nov), "plane")
-    # the familiar point: exactly the learned covariance and features
+    at_edge = attributes(values, vectors, nov.clamp(f), parts, "plane")
     np.testing.assert_allclose(gated_covs[0], covs[0], rtol=1e-6)
     np.testing.assert_allclose(gated_feats[0], feats[0], rtol=1e-6)
-    # the novel point: GICP's plane (eps, 1, 1) at unit norm, and zero association features
-    plane = np.array([cov.PLANE_EPS, 1.0, 1.0]) / np.sqrt(2 + cov.PLANE_EPS**2)
-    expected = np.asarray(vectors[1]) @ np.diag(plane) @ np.asarray(vectors[1]).T
-    np.testing.assert_allclose(gated_covs[1], expected, atol=1e-6)
-    np.testing.assert_allclose(gated_feats[1], 0.0)
-    assert not np.allclose(covs[1], expected, atol=1e-3)  # the MLP alone would differ there
+    np.testing.assert_allclose(gated_covs[1], at_edge[0][1], rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(gated_feats[1], at_edge[1][1], rtol=1e-5)
+    assert np.abs(np.asarray(feats[1]) - np.asarray(gated_feats[1])).max() > 0.1
 
 
-def test_gradients_flow_to_the_mlps_of_partly_trusted_points_not_to_the_novelty():
+def test_gradients_reach_the_mlps_not_the_novelty():
     rng = np.random.default_rng(2)
     nov = fit_novelty(rng.normal(size=(5000, 6)))
-    f = jnp.asarray(rng.normal(size=(8, 6)) * 2.0, jnp.float32)  # some on the ramp
+    f = jnp.asarray(rng.normal(size=(8, 6)) * 2.0, jnp.float32)  # some beyond the radius
     vectors = jnp.broadcast_to(jnp.eye(3, dtype=jnp.float32), (8, 3, 3))
     values = jnp.ones((8, 3), jnp.float32)
 
@@ -98,7 +90,7 @@ def test_model_file_keeps_the_novelty_and_rejects_a_broken_one(tiny_training, tm
     save_model(path, model)
     back = load_model(path)
     np.testing.assert_allclose(back.novelty.factor, nov.factor)
-    assert back.novelty.inner == pytest.approx(nov.inner)
+    assert back.novelty.radius2 == pytest.approx(nov.radius2)
     assert back.learned.novelty is back.novelty
     assert load_model(tiny_training.start).novelty is None
     with np.load(path) as z:
@@ -142,10 +134,10 @@ def test_gloam_novelty_fits_on_the_training_worlds(tiny_training, tmp_path):
                                cache_dir=tmp_path / "cache")  # fmt: skip
     f = np.concatenate([x for per in features.values() for x in per])
     d2 = np.asarray(model.novelty.squared_distance(jnp.asarray(f)))
-    beyond = np.mean(d2 > model.novelty.inner)
+    beyond = np.mean(d2 > model.novelty.radius2)
     assert beyond == pytest.approx(0.1, abs=0.01)
     info = CliRunner().invoke(app, ["model-info", str(out)])
-    assert "novelty: learned parts trusted to d2" in info.output
+    assert "novelty: MLP inputs clamped to d2" in info.output
     missing = CliRunner().invoke(app, ["novelty", str(tmp_path / "none.npz"), "--config",
                                        str(config), "--out", str(out)])  # fmt: skip
     assert missing.exit_code != 0 and "model file not found" in missing.output

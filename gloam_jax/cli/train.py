@@ -112,9 +112,8 @@ def model_info(
     if m.novelty is not None:
         fit = prov.get("novelty", {})
         say(
-            f"novelty: learned parts trusted to d2 {float(m.novelty.inner):.2f}, GICP's from "
-            f"{float(m.novelty.outer):.2f} (quantile {fit.get('quantile')} of "
-            f"{fit.get('points')} training points)"
+            f"novelty: MLP inputs clamped to d2 {float(m.novelty.radius2):.2f} (quantile "
+            f"{fit.get('quantile')} of {fit.get('points')} training points)"
         )
     if "mode" not in prov:
         say(f"untrained (not written by gloam train): {prov or 'no provenance'}")
@@ -154,14 +153,11 @@ def novelty(
     config: Annotated[Path, typer.Option(help="The training config whose train worlds it saw.")],
     out: Annotated[Path, typer.Option(help="Model file to write (.npz).")],
     quantile: Annotated[
-        float, typer.Option(min=0.0, max=1.0, help="Training points' d2 quantile still trusted.")
+        float, typer.Option(min=0.0, max=1.0, help="Training points' d2 quantile kept as is.")
     ] = 0.99,
-    ramp: Annotated[
-        float, typer.Option(min=1.0, help="Trust reaches 0 at this multiple of that d2.")
-    ] = 2.0,
     cache: Annotated[Path | None, typer.Option(help=CACHE_HELP_PREPARED)] = None,
 ) -> None:
-    """Let a model fall back to GICP where a point's features are unlike its training ones."""
+    """Clamp a model's MLP inputs to the feature region of its training worlds."""
     from gloam_jax.config import load_config
     from gloam_jax.models import load_model, save_model
     from gloam_jax.training.config import TrainConfig
@@ -170,14 +166,14 @@ def novelty(
     cfg = load_config(config, TrainConfig)
     with progress_bar() as bar:
         fitted = fit_model_novelty(
-            load_model(model), cfg, quantile=quantile, ramp=ramp, cache_dir=cache,
+            load_model(model), cfg, quantile=quantile, cache_dir=cache,
             progress=Tasks(bar),
         )  # fmt: skip
     save_model(out, fitted)
     record = fitted.provenance["novelty"]
     console.print(
-        f"novelty fitted on {record['points']} training points: trust falls from d2 "
-        f"{float(fitted.novelty.inner):.2f} to 0 at {float(fitted.novelty.outer):.2f}; {out}",
+        f"feature region fitted on {record['points']} training points: MLP inputs clamped "
+        f"to d2 {float(fitted.novelty.radius2):.2f}; {out}",
         highlight=False,
     )
 

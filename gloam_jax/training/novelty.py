@@ -1,8 +1,8 @@
-"""Fit a model's feature novelty (:mod:`gloam_jax.features.novelty`) on its training scans.
+"""Fit a model's feature region (:mod:`gloam_jax.features.novelty`) on its training scans.
 
 The training worlds of a training config, prepared as training prepares them (the same
 voxels, backbone and PCA, read from the same cache), give the PCA features the MLPs were
-fitted on; the novelty's mean, covariance and trusted quantile come from those.
+fitted on; the region's mean, covariance and radius come from those.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gloam_jax.features.novelty import DEFAULT_QUANTILE, DEFAULT_RAMP, fit_novelty
+from gloam_jax.features.novelty import DEFAULT_QUANTILE, fit_novelty
 from gloam_jax.models import GLOAMModel
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.data import open_sequences, prepare_window
@@ -46,23 +46,21 @@ def fit_model_novelty(
     config: TrainConfig,
     *,
     quantile: float = DEFAULT_QUANTILE,
-    ramp: float = DEFAULT_RAMP,
     cache_dir: str | Path | None = None,
     progress: Callable[[str, int, int], None] | None = None,
 ) -> GLOAMModel:
-    """``model`` with a novelty fitted on ``config``'s training worlds, recorded in its
-    provenance."""
+    """``model`` with its MLP inputs clamped to the feature region of ``config``'s training
+    worlds, recorded in its provenance."""
     features = window_features(
         model, config, config.training_roots, config.sequences,
         cache_dir=cache_dir, progress=progress,
     )  # fmt: skip
     scans = [f for per_world in features.values() for f in per_world]
-    novelty = fit_novelty(scans, quantile=quantile, ramp=ramp)
+    novelty = fit_novelty(scans, quantile=quantile)
     record = {
         "fitted_on": {"data": list(config.training_roots), "sequences": list(config.sequences)},
         "points": int(sum(len(f) for f in scans)),
         "quantile": quantile,
-        "ramp": ramp,
     }
     provenance = {**model.provenance, "novelty": record}
     return dataclasses.replace(model, novelty=novelty, provenance=provenance)
