@@ -73,6 +73,11 @@ def test_sensor_models_have_their_beams_and_columns():
     assert os1.elevations_deg[0] == pytest.approx(16.6) and os1.num_columns == 1024
     steps = -np.diff(hdl.elevations_deg)
     assert steps[:31].max() < 0.34 < 0.5 < steps[32:].min()
+    # HDL-32E (training only): 32 beams 1.33 deg apart, between the HDL-64's and the VLP-16's.
+    hdl32 = get_sensor("hdl32")
+    assert hdl32.num_beams == 32 and hdl32.num_columns == 2200
+    np.testing.assert_allclose(np.diff(hdl32.elevations_deg), -41.34 / 31)
+    assert draw_world(0, family="urban", sensor="hdl32").sensor.name == "hdl32"
     assert {SensorSpec("os1-64", c, 0.02, 0.0, 0.0, 0.0).model().num_columns
             for c in SENSOR_RANGES["os1-64"]["num_columns"]} == {1024, 2048}  # fmt: skip
     drawn = {draw_world(s, family="yard", sensor="os1-64").sensor.num_columns for s in range(12)}

@@ -112,6 +112,19 @@ SENSORS: dict[str, SensorModel] = {
         range_noise=0.03,
         elevation_bias_deg=0.0,
     ),
+    # Velodyne HDL-32E: 32 beams 1.33 deg apart over +10.67 .. -30.67 deg, about 0.16 deg
+    # between columns at 10 Hz. A training-only sensor (docs/worlds.md): its ring spacing lies
+    # between the HDL-64's and the VLP-16's.
+    "hdl32": SensorModel(
+        name="hdl32",
+        elevations_deg=tuple(float(e) for e in np.linspace(10.67, -30.67, 32)),
+        num_columns=2200,
+        max_range=100.0,
+        min_range=1.0,
+        mount_height=1.73,
+        range_noise=0.02,
+        elevation_bias_deg=0.0,
+    ),
     # Ouster OS1-64: 64 beams spaced uniformly over +-16.6 deg, 1024 (or 2048) columns.
     "os1-64": SensorModel(
         name="os1-64",

@@ -31,6 +31,8 @@ SENSOR_RANGES: dict[str, dict[str, tuple]] = {
                   beam_jitter_deg=(0.0, 0.02), dropout=(0.0, 0.05)),
     "vlp16": dict(num_columns=(1800,), range_noise=(0.02, 0.04), elevation_bias_deg=(-0.2, 0.2),
                   beam_jitter_deg=(0.0, 0.03), dropout=(0.0, 0.05)),
+    "hdl32": dict(num_columns=(2200,), range_noise=(0.015, 0.03), elevation_bias_deg=(-0.2, 0.2),
+                  beam_jitter_deg=(0.0, 0.03), dropout=(0.0, 0.05)),
     "os1-64": dict(num_columns=(1024, 2048), range_noise=(0.015, 0.05),
                    elevation_bias_deg=(-0.15, 0.15), beam_jitter_deg=(0.0, 0.03),
                    dropout=(0.0, 0.08)),

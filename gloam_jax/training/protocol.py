@@ -95,6 +95,12 @@ SPLITS: dict[str, tuple[World, ...]] = {
         # Added after 101-110: urban scenes seen by a VLP-16, which no training world had and
         # whose val world (205) pulled against the training worlds' gradients (docs/results.md).
         World("111", "05", 2000, "urban", "vlp16", True),
+        # Added after 111: a third sensor, the HDL-32E, whose ring spacing lies between the two
+        # others', so that training spans sensor density instead of two points of it
+        # (docs/results.md, "A third training sensor"). Test still has none of it.
+        World("112", "09", 1200, "urban", "hdl32", True),
+        World("113", "07", 950, "suburban", "hdl32", True),
+        World("114", "03", 680, "forest", "hdl32", False),
     ),
     "val": (
         World("201", "01", 350, "highway", "vlp16", True),
