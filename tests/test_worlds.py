@@ -203,7 +203,7 @@ def test_bad_world_input_is_one_line_naming_the_file(tmp_path):
     cases = [
         ({**good, "family": "desert"}, "unknown scene family 'desert'"),
         ({**good, "sensor": {**good["sensor"], "dropout": -0.1}}, "sensor.dropout must be"),
-        ({**good, "sensor": {**good["sensor"], "name": "hdl32"}}, "unknown sensor 'hdl32'"),
+        ({**good, "sensor": {**good["sensor"], "name": "hdl128"}}, "unknown sensor 'hdl128'"),
         ({**good, "scene": {**good["scene"], "building_height": [9, 3]}}, "building_height"),
         ({**good, "scene": {**good["scene"], "tree_spacing": 0}}, "scene.tree_spacing must"),
         ({k: v for k, v in good.items() if k != "frames"}, "world lacks frames"),
