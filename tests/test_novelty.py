@@ -141,3 +141,25 @@ def test_gloam_novelty_fits_on_the_training_worlds(tiny_training, tmp_path):
     missing = CliRunner().invoke(app, ["novelty", str(tmp_path / "none.npz"), "--config",
                                        str(config), "--out", str(out)])  # fmt: skip
     assert missing.exit_code != 0 and "model file not found" in missing.output
+
+
+def test_training_from_a_clamped_model_keeps_its_region_and_exports_it(tiny_training, tmp_path):
+    from gloam_jax.training.config import GradConfig
+    from gloam_jax.training.grad import train_grad
+    from gloam_jax.training.novelty import fit_model_novelty
+    from gloam_jax.training.problem import setup
+
+    cache = tmp_path / "cache"
+    clamped = fit_model_novelty(tiny_training.model, tiny_training.config(), quantile=0.5,
+                                cache_dir=cache)  # fmt: skip
+    start = tmp_path / "start.npz"
+    save_model(start, clamped)
+    grad = GradConfig(steps=1, eval_every=1, learning_rate=0.01, source_points=64)
+    cfg = tiny_training.config(mode="grad", grad=grad, init_model=str(start))
+    problem = setup(cfg, tmp_path / "run", cache_dir=cache)
+    assert problem.init_params.novelty is not None  # the training registrations clamp too
+    trained = train_grad(problem)
+    np.testing.assert_array_equal(np.asarray(trained.novelty.factor), clamped.novelty.factor)
+    exported = load_model(tmp_path / "run" / "model.npz")
+    np.testing.assert_array_equal(exported.novelty.mean, clamped.novelty.mean)
+    assert exported.novelty.radius2 == pytest.approx(clamped.novelty.radius2)
