@@ -219,7 +219,13 @@ def save_model(path: str | os.PathLike[str], model: GLOAMModel) -> None:
     write_npz(path, metadata=np.array(json.dumps(metadata)), **_arrays(model))
 
 
-def _expected_shapes(d: int) -> dict[str, tuple[int, ...]]:
+_NOVELTY_SHAPES = {"novelty_mean": (FEATURE_DIM,), "novelty_factor": (FEATURE_DIM, FEATURE_DIM),
+                   "novelty_radius2": ()}  # fmt: skip
+
+
+def _expected_shapes(d: int, novelty: bool) -> dict[str, tuple[int, ...]]:
+    """Every array of a model file and its shape, for PCA input width ``d``; ``novelty``: the
+    file has a feature region (all of its arrays, or none)."""
     shapes = {
         "pca_mean": (d,),
         "pca_scale": (d,),
@@ -233,7 +239,7 @@ def _expected_shapes(d: int) -> dict[str, tuple[int, ...]]:
             f"{prefix}_w2": (HIDDEN_DIM, OUTPUT_DIM),
             f"{prefix}_b2": (OUTPUT_DIM,),
         }
-    return shapes
+    return shapes | _NOVELTY_SHAPES if novelty else shapes
 
 
 SHIPPED = "default"
@@ -277,7 +283,8 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
             f"model format version {metadata.get('version')} is not supported "
             f"(this gloam-jax reads version {MODEL_VERSION})",
         )
-    expected = _expected_shapes(arrays["pca_mean"].size if "pca_mean" in arrays else 0)
+    novelty = any(name in arrays for name in _NOVELTY_SHAPES)
+    expected = _expected_shapes(arrays["pca_mean"].size if "pca_mean" in arrays else 0, novelty)
     for name, shape in expected.items():
         if name not in arrays:
             raise InputError(p, f"model file has no '{name}' array")
@@ -289,6 +296,8 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
             raise InputError(p, f"'{name}' contains NaN or infinite values")
     if not np.all(arrays["pca_scale"] > 0):
         raise InputError(p, "'pca_scale' must be positive (it divides the features)")
+    if novelty and not arrays["novelty_radius2"] > 0:
+        raise InputError(p, "'novelty_radius2' must be positive")
     eps = metadata.get("eps")
     if isinstance(eps, bool) or not isinstance(eps, int | float) or not eps > 0:
         raise InputError(p, f"eps must be a positive number, got {eps!r}")
@@ -320,23 +329,11 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
         version=MODEL_VERSION,
         provenance=provenance,
         max_thickness=None if max_thickness is None else float(max_thickness),
-        novelty=_novelty(p, arrays),
+        novelty=(
+            FeatureNovelty(
+                arrays["novelty_mean"], arrays["novelty_factor"], float(arrays["novelty_radius2"])
+            )
+            if novelty
+            else None
+        ),  # fmt: skip
     )
-
-
-def _novelty(p: Path, arrays: dict[str, np.ndarray]) -> FeatureNovelty | None:
-    """The file's feature novelty (None where it has none); InputError when it is malformed."""
-    names = [f"novelty_{k}" for k in FeatureNovelty._fields]
-    if not any(n in arrays for n in names):
-        return None
-    shapes = dict(zip(names, [(FEATURE_DIM,), (FEATURE_DIM, FEATURE_DIM), ()], strict=True))
-    for name, shape in shapes.items():
-        if name not in arrays or arrays[name].shape != shape:
-            got = "none" if name not in arrays else f"shape {arrays[name].shape}"
-            raise InputError(p, f"'{name}' must have shape {shape}, found {got}")
-        if arrays[name].dtype.kind != "f" or not np.all(np.isfinite(arrays[name])):
-            raise InputError(p, f"'{name}' must be finite floats")
-    novelty = FeatureNovelty(*(arrays[n] for n in names))
-    if not float(novelty.radius2) > 0:
-        raise InputError(p, "'novelty_radius2' must be positive")
-    return novelty._replace(radius2=float(novelty.radius2))

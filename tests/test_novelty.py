@@ -98,7 +98,7 @@ def test_model_file_keeps_the_novelty_and_rejects_a_broken_one(tiny_training, tm
     arrays["novelty_factor"] = arrays["novelty_factor"][:3]
     broken = tmp_path / "broken.npz"
     np.savez(broken, **arrays)
-    with pytest.raises(InputError, match=r"'novelty_factor' must have shape \(6, 6\)"):
+    with pytest.raises(InputError, match=r"'novelty_factor' has shape \(3, 6\), expected \(6, 6\)"):
         load_model(broken)
 
 
