@@ -113,6 +113,33 @@ def test_geometric_nan_rows_degenerate_scans_and_no_intensity():
         backbone(np.zeros((10, 2)))
 
 
+def test_height_cap_and_dropped_features(scan_features):
+    scan, masks, bb, f = scan_features
+    capped = GeometricBackbone(max_height=2.0, drop=["density", "intensity"])
+    g = capped(scan)
+    assert capped.feature_names == tuple(
+        n for n in bb.feature_names if n not in ("density", "intensity")
+    )
+    assert g.shape == (len(scan), 18) == (len(scan), capped.dim)
+    # Every kept column is the full backbone's, bit for bit, but the height, which stops at
+    # the cap: the pole's top (5-6 m above the road) reads 2 m, the road stays at ~0.
+    for name in capped.feature_names:
+        if name != "height":
+            np.testing.assert_array_equal(column(capped, g, name), column(bb, f, name))
+    height, full = column(capped, g, "height") * 5.0, column(bb, f, "height") * 5.0
+    np.testing.assert_allclose(height, np.minimum(full, 2.0), atol=1e-6)
+    top = masks["pole"] & (scan[:, 2] > 5.0)
+    assert np.all(np.abs(height[top] - 2.0) < 1e-6)
+    # No intensity column: the model keeps no fitted intensity to compare scans with.
+    assert capped.fitted_intensity(fit_pca(g, 6)) is None
+    rebuilt = get_backbone(capped.name, **capped.options())
+    np.testing.assert_array_equal(rebuilt(scan), g)
+    with pytest.raises(InputError, match="drop naming some of its features"):
+        GeometricBackbone(drop=["colour"])
+    with pytest.raises(InputError, match="max_height > 0"):
+        GeometricBackbone(max_height=0.0)
+
+
 def test_closed_form_eigen_against_numpy():
     rng = np.random.default_rng(2)
     A = rng.normal(size=(500, 3, 3)) * rng.uniform(0.01, 10, (500, 1, 1))

@@ -153,6 +153,20 @@ def test_a_thickness_bound_holds_in_training_and_in_the_exported_model(tiny_trai
         tiny_training.config(max_thickness=0.0)
 
 
+def test_backbone_options_reach_the_fitted_start_and_the_model_file(tiny_training, tmp_path):
+    """Without init_model, the PCA is fitted on the backbone the config's options build, and
+    the model file rebuilds that backbone."""
+    options = {"max_height": 3.0, "drop": ["density"]}
+    cfg = tiny_training.config(init_model=None, pca_every=10, backbone_options=options)
+    problem = setup(cfg, tmp_path / "run", cache_dir=tmp_path / "cache")
+    backbone = load_model(tmp_path / "run" / "init_model.npz").backbone()
+    assert backbone.options()["max_height"] == 3.0 and backbone.options()["drop"] == ["density"]
+    assert "density" not in backbone.feature_names
+    assert problem.model.pca.mean.shape == (backbone.dim,) == (19,)
+    with pytest.raises(InputError, match="backbone_options must be a mapping"):
+        tiny_training.config(backbone_options=["density"])
+
+
 def test_grad_source_points_must_be_positive():
     with pytest.raises(InputError, match="source_points must be >= 1"):
         GradConfig(source_points=0)

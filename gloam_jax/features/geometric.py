@@ -11,10 +11,15 @@ Per scale, with eigenvalues ``l1 >= l2 >= l3`` of the neighbourhood covariance a
 ``(e1 - e2) / e1``, planarity ``(e2 - e3) / e1``, scattering ``e3 / e1``, omnivariance
 ``3 (e1 e2 e3)^(1/3)``, anisotropy ``(e1 - e3) / e1``, eigenentropy ``-sum e_i ln e_i / ln 3``,
 change of curvature ``3 e3`` and verticality ``1 - |n_z|`` (n the normal): all in [0, 1].
-Then height above the lowest voxel within +-3 m horizontally (/ 5 m, clipped to [-1, 4]), the
-log10 density of raw points in the largest-k neighbourhood (/ 3), range (/ 50 m) and
-intensity (times ``intensity_scale``). Every column spans about one unit, so none dominates
-a PCA by its units.
+Then height above the lowest voxel within +-3 m horizontally (/ 5 m, clipped to
+[-5 m, ``max_height``]), the log10 density of raw points in the largest-k neighbourhood (/ 3),
+range (/ 50 m) and intensity (times ``intensity_scale``). Every column spans about one unit,
+so none dominates a PCA by its units.
+
+Two of them describe the sensor as much as the scene: point density follows the beam count,
+and height above the ground how far up a sensor looks (a VLP-16 sees facades at 10 m, an
+HDL-64 rarely above 4 m). ``max_height`` and ``drop`` (feature names left out) make features
+that a sensor missing from training shifts less (docs/results.md, "Sensor-invariant features").
 """
 
 from __future__ import annotations
@@ -49,6 +54,7 @@ _GROUND_CELL = 1.0
 _GROUND_HALF_CELLS = 128
 _GROUND_WINDOW = 7
 _HEIGHT_SCALE = 5.0  # m
+_MIN_HEIGHT = -5.0  # m
 _RANGE_SCALE = 50.0  # m
 _DENSITY_DECADES = 3.0  # log10(points / m^3) spans about -1..4
 # Added to every eigenvalue (m^2, a 10 um spread): a neighbourhood of identical points
@@ -142,8 +148,9 @@ def _ground(voxels: np.ndarray, xyz: np.ndarray) -> np.ndarray:
 class GeometricBackbone:
     """Multi-scale geometric descriptors: raw scan (N, 3+) -> features (N, D) float32.
 
-    ``D = 8 * len(scales) + 4`` (20 for the defaults); names in :attr:`feature_names`. Rows
-    with non-finite coordinates get all-zero features, so the output stays row-aligned.
+    ``D = 8 * len(scales) + 4 - len(drop)`` (20 for the defaults); names in
+    :attr:`feature_names`. Rows with non-finite coordinates get all-zero features, so the
+    output stays row-aligned.
     """
 
     name = "geometric"
@@ -153,6 +160,8 @@ class GeometricBackbone:
         voxel_size: float = 0.25,
         scales: tuple[int, ...] | list[int] = (10, 30),
         intensity_scale: float = 1.0,
+        max_height: float = 20.0,
+        drop: tuple[str, ...] | list[str] = (),
     ) -> None:
         scales = tuple(int(k) for k in scales)
         if voxel_size <= 0 or not scales or min(scales) < 3 or list(scales) != sorted(set(scales)):
@@ -164,11 +173,25 @@ class GeometricBackbone:
         self.voxel_size = float(voxel_size)
         self.scales = scales
         self.intensity_scale = float(intensity_scale)
+        self.max_height = float(max_height)
+        self.drop = tuple(str(n) for n in drop)
+        unknown = sorted(set(self.drop) - set(self._all_names))
+        if self.max_height <= 0 or unknown or len(set(self.drop)) == len(self._all_names):
+            raise InputError(
+                None,
+                f"geometric backbone: need max_height > 0 and drop naming some of its features "
+                f"({', '.join(self._all_names)}), got max_height={max_height}, drop={list(drop)}",
+            )
+        self._keep = [i for i, n in enumerate(self._all_names) if n not in self.drop]
+
+    @property
+    def _all_names(self) -> tuple[str, ...]:
+        per_scale = tuple(f"{f}_k{k}" for k in self.scales for f in EIGEN_FEATURES)
+        return per_scale + POINT_FEATURES
 
     @property
     def feature_names(self) -> tuple[str, ...]:
-        per_scale = tuple(f"{f}_k{k}" for k in self.scales for f in EIGEN_FEATURES)
-        return per_scale + POINT_FEATURES
+        return tuple(n for n in self._all_names if n not in self.drop)
 
     @property
     def dim(self) -> int:
@@ -177,7 +200,7 @@ class GeometricBackbone:
     def fitted_intensity(self, pca: FeaturePCA) -> float | None:
         """The mean intensity (the scans' units) of the points ``pca`` was fitted on; None
         when the features read no intensity."""
-        if self.intensity_scale == 0:
+        if self.intensity_scale == 0 or "intensity" in self.drop:
             return None
         return float(pca.mean[self.feature_names.index("intensity")]) / self.intensity_scale
 
@@ -187,6 +210,8 @@ class GeometricBackbone:
             "voxel_size": self.voxel_size,
             "scales": list(self.scales),
             "intensity_scale": self.intensity_scale,
+            "max_height": self.max_height,
+            "drop": list(self.drop),
         }
 
     def __call__(
@@ -232,13 +257,15 @@ class GeometricBackbone:
         voxel_features.append(np.log10(density)[:, None] / _DENSITY_DECADES)
         per_voxel = np.concatenate(voxel_features, axis=1).astype(np.float32)
 
-        height = np.clip((xyz[:, 2] - _ground(voxels, xyz)) / _HEIGHT_SCALE, -1.0, 4.0)
+        height = np.clip(xyz[:, 2] - _ground(voxels, xyz), _MIN_HEIGHT, self.max_height)
         intensity = scan[finite, 3] * self.intensity_scale if scan.shape[1] > 3 else 0.0
         per_point = np.zeros((len(xyz), 3), np.float32)
-        per_point[:, 0] = height
+        per_point[:, 0] = height / _HEIGHT_SCALE
         per_point[:, 1] = np.linalg.norm(xyz, axis=1) / _RANGE_SCALE
         per_point[:, 2] = np.nan_to_num(intensity, nan=0.0, posinf=0.0, neginf=0.0)
         features = np.concatenate([per_voxel[inverse], per_point], axis=1)
+        if self.drop:
+            features = features[:, self._keep]
         if len(features) == len(scan):
             return features
         out = np.zeros((len(scan), self.dim), np.float32)

@@ -9,7 +9,7 @@ of their classes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import ClassVar, Literal
+from typing import Any, ClassVar, Literal
 
 from gloam_jax.errors import InputError
 from gloam_jax.preprocess import PreprocessConfig
@@ -92,6 +92,9 @@ class TrainConfig:
     backbone: Literal["geometric", "net"] = "geometric"
     # net: a shipped network's name (features.net.SHIPPED_NETS) or a train-backbone file.
     backbone_weights: str = "default"
+    # More options of that backbone (its class's keyword arguments; geometric: voxel_size,
+    # scales, intensity_scale, max_height, drop).
+    backbone_options: dict[str, Any] = field(default_factory=dict)
     pca_every: int = 25  # without init_model: fit the PCA on every N-th training scan
     seed: int = 0  # of the start model, TPE's sampler and the point subsets
     # What is minimised and selected on (gloam_jax.training.objective): "t_err", the windows'
@@ -127,6 +130,10 @@ class TrainConfig:
         if self.backbone_weights != "default" and self.backbone != "net":
             raise InputError(None, "backbone_weights chooses the net backbone's network; "
                              f"this run's backbone is '{self.backbone}'")  # fmt: skip
+        if not isinstance(self.backbone_options, dict):
+            raise InputError(
+                None, f"backbone_options must be a mapping, not {self.backbone_options!r}"
+            )
         if self.worse_penalty < 0:
             raise InputError(None, f"worse_penalty must be >= 0, not {self.worse_penalty}")
         if not 0 <= self.min_gain < 1:

@@ -265,7 +265,7 @@ def setup(
             model = load_model(config.init_model)
         else:
             options = {"weights": config.backbone_weights} if config.backbone == "net" else {}
-            extractor = get_backbone(config.backbone, **options)
+            extractor = get_backbone(config.backbone, **options | config.backbone_options)
             model = fit_initial_model(
                 config.training_roots,
                 config.sequences,
