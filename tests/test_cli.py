@@ -250,6 +250,9 @@ def test_model_info_says_how_a_model_was_made(tmp_path):
         "t_err": {"mean": 0.2822, "std": 0.0231},
         "r_err": {"mean": 0.987, "std": 0.079},
     }
+    # A second look at three worlds of one simulation seed: no spread.
+    rescore = {**score, "worlds": ["302", "305", "307"], "sim_seeds": [2]}
+    rescore |= {"t_err": {"mean": 0.174, "std": None}, "r_err": {"mean": 0.71, "std": None}}
     provenance = {
         "mode": "grad",
         "method": "gloam",
@@ -260,7 +263,7 @@ def test_model_info_says_how_a_model_was_made(tmp_path):
         "selected_on": "validation",
         "selected_value": 0.8198,
         "validation_gicp": 1.0035,
-        "test_scores": [score],
+        "test_scores": [score, rescore],
     }
     save_model(tmp_path / "m.npz", dataclasses.replace(bare, provenance=provenance))
     save_model(tmp_path / "bare.npz", bare)
@@ -275,6 +278,7 @@ def test_model_info_says_how_a_model_was_made(tmp_path):
         "worlds 301-303 (3)",
         "0.282 ± 0.023",
         "(abc1234, 2026-12-05)",
+        "worlds 302, 305, 307 (3), simulation seeds 2: t_err 0.174 ± n/a %",
     ):
         assert text in shown.output, text
     as_json = runner.invoke(app, ["model-info", str(tmp_path / "m.npz"), "--json"])

@@ -134,13 +134,25 @@ def model_info(
     if not scores:
         say("test split: not scored")
     for s in scores:
-        worlds = s["worlds"]
         say(
-            f"test ({s['method']}): worlds {worlds[0]}-{worlds[-1]} ({len(worlds)}), simulation "
-            f"seeds {','.join(map(str, s['sim_seeds']))}: t_err {s['t_err']['mean']:.3f} ± "
-            f"{s['t_err']['std']:.3f} %, r_err {s['r_err']['mean']:.3f} ± "
-            f"{s['r_err']['std']:.3f} deg/100 m ({s['commit'].split()[0]}, {s['date'][:10]})"
+            f"test ({s['method']}): worlds {_world_span(s['worlds'])}, simulation seeds "
+            f"{','.join(map(str, s['sim_seeds']))}: t_err {_mean_std(s['t_err'])} %, r_err "
+            f"{_mean_std(s['r_err'])} deg/100 m ({s['commit'].split()[0]}, {s['date'][:10]})"
         )
+
+
+def _world_span(worlds: list[str]) -> str:
+    """``301-310 (10)`` for consecutive ids, else ``302, 305, 307 (3)``."""
+    ids = [int(w) if str(w).isdigit() else None for w in worlds]
+    consecutive = None not in ids and ids == list(range(ids[0], ids[0] + len(ids)))
+    shown = f"{worlds[0]}-{worlds[-1]}" if consecutive and len(ids) > 1 else ", ".join(worlds)
+    return f"{shown} ({len(worlds)})"
+
+
+def _mean_std(agg: dict) -> str:
+    """``mean ± std``; one run has no spread (``± n/a``)."""
+    std = "n/a" if agg.get("std") is None else f"{agg['std']:.3f}"
+    return f"{agg['mean']:.3f} ± {std}"
 
 
 @app.command(
