@@ -15,7 +15,7 @@ from gloam_jax.errors import InputError
 from gloam_jax.features import fit_pca, get_backbone
 from gloam_jax.features.novelty import fit_novelty
 from gloam_jax.gicp import GICPConfig
-from gloam_jax.models import init_model, learned_parts, save_model
+from gloam_jax.models import init_model, learned_parts, load_model, save_model
 from gloam_jax.odometry import Odometry, OdometryConfig
 from gloam_jax.registration import align_prepared, build_cloud
 
@@ -169,11 +169,19 @@ def test_init_model_then_run_gloam_from_the_command_line(sim_sequence, tmp_path)
     weights = tmp_path / "model.npz"
     made = runner.invoke(
         app,
-        ["init-model", str(sim_sequence), "00", "--every", "20",
-         "--out", str(weights)],
+        ["init-model", str(sim_sequence), "00", "--every", "20", "--backbone-options",
+         "{drop: [density], max_height: 4.0}", "--out", str(weights)],
     )  # fmt: skip
     assert made.exit_code == 0, made.output
     assert "of the variance" in made.output and weights.exists()
+    # The run below rebuilds that backbone from the file: 19 features, not 20.
+    assert load_model(weights).backbone().options()["drop"] == ["density"]
+    assert load_model(weights).pca.mean.shape == (19,)
+    for bad in ("[density]", "{drop: [density]"):
+        refused = runner.invoke(app, ["init-model", str(sim_sequence), "00", "--backbone-options",
+                                      bad, "--out", str(tmp_path / "bad.npz")])  # fmt: skip
+        assert refused.exit_code == 2, refused.output
+        assert "--backbone-options must be a YAML mapping" in refused.output
     result = runner.invoke(
         app,
         ["run", str(sim_sequence), "--sequence", "00", "--frames", "5", "--config",

@@ -35,6 +35,9 @@ def init_model(
     out: Annotated[Path, typer.Option(help="Model file to write (.npz).")] = Path("model.npz"),
     every: Annotated[int, typer.Option(min=1, help="Use every N-th scan for the PCA.")] = 25,
     backbone: Annotated[str, typer.Option(help="Feature backbone: geometric, net.")] = "geometric",
+    backbone_options: Annotated[
+        str, typer.Option(help="Its options as a YAML mapping, e.g. '{drop: [density]}'.")
+    ] = "{}",
     features: Annotated[
         Path | None, typer.Option(help="Fit on per-scan feature files here instead.")
     ] = None,
@@ -44,14 +47,24 @@ def init_model(
     ] = "random",
 ) -> None:
     """Fit the frozen PCA on training scans and write a model file with untrained MLPs."""
+    import yaml
+
     from gloam_jax.features import get_backbone
     from gloam_jax.models import save_model
     from gloam_jax.training.problem import fit_initial_model
 
+    try:
+        options = yaml.safe_load(backbone_options)
+    except yaml.YAMLError:
+        options = None
+    if not isinstance(options, dict):
+        raise InputError(
+            None, f"--backbone-options must be a YAML mapping, not {backbone_options!r}"
+        )
     extractor = (
         get_backbone("precomputed", folder=features)
         if features is not None
-        else get_backbone(backbone)
+        else get_backbone(backbone, **options)
     )
     with progress_bar() as bar:
         step = Tasks(bar)
