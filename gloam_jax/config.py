@@ -139,6 +139,16 @@ def _load(path: Path, cls: type, chain: tuple[Path, ...]):
         raise
 
 
+def parse_mapping(text: str) -> dict[str, Any] | None:
+    """A YAML mapping given as text (``'{drop: [density]}'``, a command-line value); None when
+    the text is not valid YAML or not a mapping, for the caller's one-line error."""
+    try:
+        values = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return None
+    return values if isinstance(values, dict) else None
+
+
 def _read_mapping(path: Path) -> dict[str, Any]:
     """A settings file's top-level mapping; a one-line error naming the file otherwise."""
     try:

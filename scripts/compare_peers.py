@@ -32,12 +32,11 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
-import yaml
 from bench_odometry import _CompileCounter, run_kiss, run_ours, run_small_gicp
 from make_tables import commit, window_rte
 
 from gloam_jax import io
-from gloam_jax.config import build_dataclass, load_config
+from gloam_jax.config import build_dataclass, load_config, parse_mapping
 
 PEERS = ("small_gicp", "kiss-icp", "genz-icp", "genz-icp-kitti")
 
@@ -85,8 +84,8 @@ def parse_variants(items: list[str]) -> dict[str, dict]:
     variants = {}
     for item in items:
         name, _, text = item.partition("=")
-        values = yaml.safe_load(text) if text else None
-        if not name or not isinstance(values, dict):
+        values = parse_mapping(text) if text else None
+        if not name or values is None:
             raise SystemExit(f"--variant {item!r}: expected NAME=YAML mapping")
         variants[name] = values
     return variants

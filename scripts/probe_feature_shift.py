@@ -21,9 +21,9 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import yaml
 from make_tables import commit
 
+from gloam_jax.config import parse_mapping
 from gloam_jax.datasets import open_dataset
 from gloam_jax.features import get_backbone
 from gloam_jax.io import write_atomic
@@ -58,8 +58,8 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=10)
     parser.add_argument("--out", type=Path, required=True, help="writes OUT.json and OUT.md")
     args = parser.parse_args()
-    options = yaml.safe_load(args.options)
-    if not isinstance(options, dict):
+    options = parse_mapping(args.options)
+    if options is None:
         raise SystemExit(f"--options must be a YAML mapping, not {args.options!r}")
     backbone = get_backbone(args.backbone, **options)
     names = backbone.feature_names

@@ -47,17 +47,13 @@ def init_model(
     ] = "random",
 ) -> None:
     """Fit the frozen PCA on training scans and write a model file with untrained MLPs."""
-    import yaml
-
+    from gloam_jax.config import parse_mapping
     from gloam_jax.features import get_backbone
     from gloam_jax.models import save_model
     from gloam_jax.training.problem import fit_initial_model
 
-    try:
-        options = yaml.safe_load(backbone_options)
-    except yaml.YAMLError:
-        options = None
-    if not isinstance(options, dict):
+    options = parse_mapping(backbone_options)
+    if options is None:
         raise InputError(
             None, f"--backbone-options must be a YAML mapping, not {backbone_options!r}"
         )
