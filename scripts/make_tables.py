@@ -27,6 +27,13 @@ simulation seeds; GICP: simulation seeds), the split mean likewise over each run
 the worlds. ``--split test`` scores each model file once: the score (split, worlds, seeds,
 data, commit, date, t_err, r_err) is appended to the file's provenance (``test_scores``), and a
 second test scoring of that file stops with one line unless ``--force``.
+
+Table III, for each model label: its gain against GICP (group mean t_err over GICP's, less 1)
+per group of worlds (``protocol.world_groups``: held-out family, held-out sensor, seen,
+undistorted) and per world, with a 95 % bootstrap interval that resamples the label's model
+files and the simulation seeds (GICP on the same resampled seeds), the cells (file x seed)
+more than 2 % worse than GICP's, and issue 18's targets. ``--rebuild`` writes the tables again
+from ``--out``'s tables.json, running and recording nothing.
 """
 
 from __future__ import annotations
@@ -47,7 +54,7 @@ from gloam_jax.config import load_config
 from gloam_jax.models import load_model, save_model, shipped_model_path
 from gloam_jax.pipeline import run_sequence
 from gloam_jax.training.losses import TRAINING_FRACTIONS, scaled_lengths
-from gloam_jax.training.protocol import SPLITS, TEST_SEQUENCES, TRAIN_SEQUENCES
+from gloam_jax.training.protocol import SPLITS, TEST_SEQUENCES, TRAIN_SEQUENCES, world_groups
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
@@ -135,6 +142,134 @@ def summarize(runs: list[dict], worlds: tuple[str, ...]) -> dict:
     return out
 
 
+WORSE = 0.02  # a cell or world "worse than GICP": above its t_err by more than this fraction
+# Issue 18's targets: (group, highest allowed gain); "world" bounds every world's gain.
+TARGETS = (
+    ("seen", -0.10),
+    ("held-out family", -0.20),
+    ("held-out sensor", -0.20),
+    ("world", WORSE),
+)
+
+
+def _t_err_arrays(runs: dict[str, list[dict]], worlds: tuple[str, ...], label: str):
+    """t_err of ``label``'s runs as (model files, seeds, worlds) and GICP's as (seeds, worlds),
+    the seeds in the order of GICP's runs."""
+    draws = [r["data"] for r in runs["GICP"]]
+    gicp = np.array([[r["worlds"][w]["t_err"] for w in worlds] for r in runs["GICP"]])
+    files = sorted({r["model"] for r in runs[label]})
+    model = np.full((len(files), len(draws), len(worlds)), np.nan)
+    for r in runs[label]:
+        model[files.index(r["model"]), draws.index(r["data"])] = [
+            r["worlds"][w]["t_err"] for w in worlds
+        ]
+    if np.isnan(model).any():
+        raise SystemExit(f"{label}: not every model file was run on every --data root")
+    return model, gicp
+
+
+def gains(record: dict, label: str, resamples: int = 2000, seed: int = 0) -> dict:
+    """Table III of ``label`` in ``record`` (a split's tables.json): per group and per world,
+    the gain against GICP (fraction; negative is better), its 95 % bootstrap interval over model
+    files and simulation seeds, and the cells more than :data:`WORSE` worse than GICP's."""
+    worlds = tuple(record["worlds"])
+    model, gicp = _t_err_arrays(record["runs"], worlds, label)
+    rng = np.random.default_rng(seed)
+    f_idx = rng.integers(0, model.shape[0], (resamples, model.shape[0]))
+    d_idx = rng.integers(0, model.shape[1], (resamples, model.shape[1]))
+    # per resample: each world's mean t_err over the drawn files x seeds, and GICP's
+    boot_model = np.stack(
+        [model[f][:, d].mean(axis=(0, 1)) for f, d in zip(f_idx, d_idx, strict=True)]
+    )
+    boot_gicp = np.stack([gicp[d].mean(axis=0) for d in d_idx])
+
+    def gain(cols: list[int]) -> dict:
+        point = model[..., cols].mean() / gicp[:, cols].mean() - 1.0
+        boot = boot_model[:, cols].mean(axis=1) / boot_gicp[:, cols].mean(axis=1) - 1.0
+        worse = model[..., cols] > (1.0 + WORSE) * gicp[None, :, cols]
+        return {
+            "gain": float(point),
+            "interval": [float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))],
+            "cells_worse": int(worse.sum()),
+            "cells": int(worse.size),
+        }
+
+    groups = {}  # each over its worlds that were run
+    for name, members in world_groups(record["split"]).items():
+        ws = [w for w in members if w in worlds]
+        if ws:
+            groups[name] = {"worlds": ws, **gain([worlds.index(w) for w in ws])}
+    per_world = {w: gain([i]) for i, w in enumerate(worlds)}
+    targets = []  # judged on the test split only
+    for name, bound in TARGETS if record["split"] == "test" else ():
+        rows = [per_world[w] for w in worlds] if name == "world" else [groups.get(name)]
+        if None in rows:
+            continue
+        worst = max(rows, key=lambda r: r["gain"])
+        targets.append({
+            "target": name, "bound": bound, "gain": worst["gain"], "interval": worst["interval"],
+            "met": worst["gain"] <= bound,
+            # whether the interval lies wholly on one side of the bound
+            "decided": not worst["interval"][0] <= bound <= worst["interval"][1],
+        })  # fmt: skip
+    return {"groups": groups, "worlds": per_world, "targets": targets}
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:+.1f} %"
+
+
+def gains_markdown(label: str, table: dict) -> list[str]:
+    """Table III of one label as markdown lines."""
+
+    def row(name: str, g: dict) -> str:
+        low, high = g["interval"]
+        worse = f"{g['cells_worse']} of {g['cells']}"
+        return f"| {name} | {_pct(g['gain'])} | {_pct(low)} to {_pct(high)} | {worse} |"
+
+    head = "| {} | gain against GICP | 95 % interval | cells > 2 % worse |"
+    lines = ["", f"Table III, {label}: t_err against GICP's (files x seeds resampled)", ""]
+    lines += [head.format("group"), "|---|---|---|---|"]
+    lines += [row(f"{n} ({', '.join(g['worlds'])})", g) for n, g in table["groups"].items()]
+    lines += ["", head.format("world"), "|---|---|---|---|"]
+    lines += [row(w, g) for w, g in table["worlds"].items()]
+    if table["targets"]:
+        lines += ["", "| issue 18 target | bound | gain | met | interval decides |"]
+        lines += ["|---|---|---|---|---|"]
+    for t in table["targets"]:
+        name = "every world" if t["target"] == "world" else t["target"]
+        lines.append(
+            f"| {name} | {_pct(t['bound'])} | {_pct(t['gain'])} | {'yes' if t['met'] else 'no'} "
+            f"| {'yes' if t['decided'] else 'no'} |"
+        )
+    return lines
+
+
+def write_tables(record: dict, out: Path) -> str:
+    """Render ``record``'s split table and each model label's Table III into ``out``
+    (tables.md, and tables.json with the Table III figures added); return the markdown."""
+    worlds = record["worlds"]
+    head = ["method", *worlds, "mean", "runs"]
+    lines = [
+        f"{record['split']} split, t_err (%), mean ± sample std over runs (model files x "
+        f"simulation seeds {record['sim_seeds']}), commit {record['commit']}",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * len(head),
+    ]
+    for label, agg in record["summary"].items():
+        cells = [fmt_pm(agg["worlds"][s]["t_err"]) for s in worlds]
+        cells += [fmt_pm(agg["mean"]["t_err"]), str(agg["runs"])]
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    record["gains"] = {label: gains(record, label) for label in record["runs"] if label != "GICP"}
+    for label, table in record["gains"].items():
+        lines += gains_markdown(label, table)
+    text = "\n".join(lines)
+    io.write_atomic(out / "tables.md", text + "\n")
+    io.write_atomic(out / "tables.json", json.dumps(record, indent=2))
+    return text
+
+
 def recorded_test_scores(path: Path) -> list[dict]:
     return load_model(path).provenance.get("test_scores", [])
 
@@ -202,22 +337,7 @@ def split_tables(args: argparse.Namespace, models: dict[str, list[Path]]) -> dic
         "summary": summary,
         "runs": runs,
     }
-    head = ["method", *worlds, "mean", "runs"]
-    lines = [
-        f"{args.split} split, t_err (%), mean ± sample std over runs (model files x "
-        f"simulation seeds {seeds}), commit {record['commit']}",
-        "",
-        "| " + " | ".join(head) + " |",
-        "|" + "---|" * len(head),
-    ]
-    for label, agg in summary.items():
-        cells = [fmt_pm(agg["worlds"][s]["t_err"]) for s in worlds]
-        cells += [fmt_pm(agg["mean"]["t_err"]), str(agg["runs"])]
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    text = "\n".join(lines)
-    print(text)
-    io.write_atomic(args.out / "tables.md", text + "\n")
-    io.write_atomic(args.out / "tables.json", json.dumps(record, indent=2))
+    print(write_tables(record, args.out))
     if testing:  # each file's own score: its mean over the simulation seeds, per method
         base = {k: record[k] for k in ("split", "worlds", "sim_seeds", "data", "commit", "date")}
         for f in files:
@@ -240,7 +360,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--split", choices=("val", "test"), help="score the protocol's worlds")
     parser.add_argument("--force", action="store_true", help="score a model on test again")
     parser.add_argument("--out", type=Path, default=Path("results/tables"))
+    parser.add_argument("--rebuild", action="store_true",
+                        help="rewrite --out's split tables from its tables.json only")  # fmt: skip
     args = parser.parse_args(argv)
+    if args.rebuild:
+        saved = args.out / "tables.json"
+        if not saved.is_file():
+            raise SystemExit(f"{saved}: no such file (--rebuild reads a --split run's tables)")
+        record = json.loads(saved.read_text())
+        if "split" not in record:
+            raise SystemExit(f"{saved}: not the tables of a --split run")
+        print(write_tables(record, args.out))
+        return
     args.data = args.data or [Path("data/protocol")]
     models: dict[str, list[Path]] = {}
     for item in args.model:

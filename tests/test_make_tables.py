@@ -64,6 +64,11 @@ def test_split_aggregates_over_model_files_and_simulation_seeds(tmp_path, monkey
     assert model["mean"]["r_err"]["std"] == pytest.approx(
         np.std(2 * np.array(split_means), ddof=1), abs=1e-12
     )
+    # Table III over the worlds run: (1.1 + 1.3) / 2 / 1.6 - 1 on the run means
+    (seen,) = [g for n, g in record["gains"]["GLOAM (m)"]["groups"].items() if n == "seen"]
+    assert seen["worlds"] == list(worlds) and seen["cells_worse"] == 0
+    assert seen["gain"] == pytest.approx(1.2 / 1.6 - 1, abs=1e-12)
+    assert record["gains"]["GLOAM (m)"]["targets"] == []  # judged on test only
     gicp = record["summary"]["GICP"]
     assert gicp["runs"] == 2
     assert gicp["mean"]["t_err"]["mean"] == pytest.approx(1.6, abs=1e-12)
@@ -137,3 +142,80 @@ def test_val_split_leaves_the_model_file_alone(tmp_path, monkeypatch):
     assert "test_scores" not in load_model(model_file).provenance
     with pytest.raises(SystemExit, match="not in the val split: 301"):
         make_tables.main(["--split", "val", "--sequences", "301", "--data", str(root)])
+
+
+def _record(model_t_err, gicp_t_err, worlds=tuple(str(w) for w in range(301, 311))) -> dict:
+    """A test split's tables.json: GICP's runs (seeds, worlds) and one label's (files, seeds,
+    worlds) t_err."""
+    draws = [f"data/s{k}" for k in range(len(gicp_t_err))]
+
+    def run(model, data, row):
+        return {
+            "model": model,
+            "data": data,
+            "worlds": {w: {"t_err": t} for w, t in zip(worlds, row, strict=True)},
+        }
+
+    runs = {"GICP": [run(None, d, row) for d, row in zip(draws, gicp_t_err, strict=True)]}
+    runs["GLOAM (m)"] = [
+        run(f"f{i}.npz", d, row)
+        for i, rows in enumerate(model_t_err)
+        for d, row in zip(draws, rows, strict=True)
+    ]
+    return {"split": "test", "worlds": list(worlds), "sim_seeds": list(range(len(draws))),
+            "commit": "abc", "summary": {}, "runs": runs}  # fmt: skip
+
+
+def test_table_iii_gains_intervals_and_targets():
+    # GICP 1.0 everywhere on two seeds; two files alike: the yard worlds 302, 304, 309 at 0.5,
+    # the OS1-64 highway 305 at 1.3, everything else at 0.85
+    worlds = [str(w) for w in range(301, 311)]
+    row = np.array([{"302": 0.5, "304": 0.5, "309": 0.5, "305": 1.3}.get(w, 0.85) for w in worlds])
+    table = make_tables.gains(_record(np.tile(row, (2, 2, 1)), np.ones((2, 10))), "GLOAM (m)")
+    groups = table["groups"]
+    assert groups["held-out family"]["worlds"] == ["302", "304", "309"]
+    assert groups["held-out family"]["gain"] == pytest.approx(-0.5, abs=1e-12)
+    # 302 (0.5), 305 (1.3), 307 (0.85): mean 0.8833
+    assert groups["held-out sensor"]["gain"] == pytest.approx(2.65 / 3 - 1, abs=1e-12)
+    assert groups["seen"]["gain"] == pytest.approx(-0.15, abs=1e-12)
+    assert table["worlds"]["305"]["gain"] == pytest.approx(0.3, abs=1e-12)
+    assert table["worlds"]["305"]["cells_worse"] == 4 and table["worlds"]["305"]["cells"] == 4
+    assert groups["all"]["cells_worse"] == 4 and groups["all"]["cells"] == 40
+    # nothing varies over files or seeds: every resample gives the point
+    assert table["worlds"]["305"]["interval"] == pytest.approx([0.3, 0.3], abs=1e-12)
+    targets = {t["target"]: t for t in table["targets"]}
+    assert targets["seen"]["met"] and targets["held-out family"]["met"]
+    assert not targets["held-out sensor"]["met"] and targets["held-out sensor"]["decided"]
+    assert not targets["world"]["met"] and targets["world"]["gain"] == pytest.approx(0.3, abs=1e-12)
+
+
+def test_table_iii_interval_spans_what_the_files_and_seeds_span():
+    # the two files disagree on 305: 0.7 and 1.5 of GICP on each seed; GICP's seeds differ
+    worlds = [str(w) for w in range(301, 311)]
+    gicp = np.array([np.ones(10), 2 * np.ones(10)])
+    model = np.stack([gicp.copy(), gicp.copy()])
+    i305 = worlds.index("305")
+    model[0, :, i305] *= 0.7
+    model[1, :, i305] *= 1.5
+    w305 = make_tables.gains(_record(model, gicp), "GLOAM (m)")["worlds"]["305"]
+    assert w305["gain"] == pytest.approx(0.1, abs=1e-12)
+    low, high = w305["interval"]
+    # a resample draws file 0 twice, file 1 twice, or one of each: -30 %, +50 % or +10 %
+    assert low == pytest.approx(-0.3, abs=1e-12) and high == pytest.approx(0.5, abs=1e-12)
+    assert w305["cells_worse"] == 2
+
+
+def test_rebuild_writes_table_iii_from_saved_tables(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit, match="tables.json: no such file"):
+        make_tables.main(["--rebuild", "--out", str(out)])
+    out.mkdir()
+    worlds = [str(w) for w in range(301, 311)]
+    record = _record(0.9 * np.ones((1, 2, 10)), np.ones((2, 10)))
+    (out / "tables.json").write_text(json.dumps(record))
+    make_tables.main(["--rebuild", "--out", str(out)])
+    text = (out / "tables.md").read_text()
+    assert "| held-out sensor | -20.0 % | -10.0 % | no | yes |" in text
+    assert "| 305 | -10.0 % | -10.0 % to -10.0 % | 0 of 2 |" in text
+    saved = json.loads((out / "tables.json").read_text())
+    assert saved["gains"]["GLOAM (m)"]["groups"]["all"]["worlds"] == worlds

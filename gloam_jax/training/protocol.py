@@ -124,6 +124,25 @@ SPLITS: dict[str, tuple[World, ...]] = {
 }
 
 
+def world_groups(split: str) -> dict[str, tuple[str, ...]]:
+    """The ids of ``split``'s worlds by what issue 18 judges separately: the held-out family
+    (``yard``, whatever its sensor), the held-out sensor (``os1-64``, whatever its family), the
+    worlds with neither ("seen": a family and a sensor that training has), the undistorted ones,
+    and all. A world of the held-out family seen by the held-out sensor is in both groups."""
+    worlds = SPLITS[split]
+    return {
+        "held-out family": tuple(w.sequence for w in worlds if w.family == HELD_OUT_FAMILY),
+        "held-out sensor": tuple(w.sequence for w in worlds if w.sensor == HELD_OUT_SENSOR),
+        "seen": tuple(
+            w.sequence
+            for w in worlds
+            if w.family != HELD_OUT_FAMILY and w.sensor != HELD_OUT_SENSOR
+        ),
+        "undistorted": tuple(w.sequence for w in worlds if not w.motion_distortion),
+        "all": tuple(w.sequence for w in worlds),
+    }
+
+
 def world_spec(world: World, frames: int = WORLD_FRAMES, seed_offset: int = 0) -> WorldSpec:
     """The :class:`~gloam_jax.simulate.spec.WorldSpec` of a protocol world, drawn from its id
     (plus ``seed_offset``, for another draw of the same protocol)."""
