@@ -32,8 +32,8 @@ Table III, for each model label: its gain against GICP (group mean t_err over GI
 per group of worlds (``protocol.world_groups``: held-out family, held-out sensor, seen,
 undistorted) and per world, with a 95 % bootstrap interval that resamples the label's model
 files and the simulation seeds (GICP on the same resampled seeds), the cells (file x seed)
-more than 2 % worse than GICP's, and issue 18's targets. ``--rebuild`` writes the tables again
-from ``--out``'s tables.json, running and recording nothing.
+more than 2 % worse than GICP's, and issue 18's targets. ``gains.png`` plots it per world.
+``--rebuild`` writes the tables again from ``--out``'s tables.json, running and recording nothing.
 """
 
 from __future__ import annotations
@@ -245,6 +245,46 @@ def gains_markdown(label: str, table: dict) -> list[str]:
     return lines
 
 
+def plot_gains(record: dict, path: Path) -> Path:
+    """A PNG of Table III: per world, each label's gain against GICP with its 95 % interval,
+    the held-out worlds marked, and the issue's 2 % bound."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    worlds, tables = record["worlds"], record["gains"]
+    groups = world_groups(record["split"])
+    fig = Figure(figsize=(1.0 + 0.75 * len(worlds), 3.6), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    width = 0.8 / max(len(tables), 1)
+    for k, (label, table) in enumerate(tables.items()):
+        x = np.arange(len(worlds)) + (k - (len(tables) - 1) / 2) * width
+        g = np.array([100 * table["worlds"][w]["gain"] for w in worlds])
+        low, high = (
+            np.array([100 * table["worlds"][w]["interval"][i] for w in worlds]) for i in (0, 1)
+        )
+        ax.bar(x, g, width, label=label, yerr=[g - low, high - g], capsize=2, error_kw={"lw": 0.8})
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.axhline(100 * WORSE, color="tab:red", lw=0.8, ls="--", label="+2 % (issue 18)")
+
+    def name(w: str) -> str:
+        marks = [
+            m
+            for m, g in (("family", "held-out family"), ("sensor", "held-out sensor"))
+            if w in groups[g]
+        ]
+        return w + "".join(f"\n{m}" for m in marks)
+
+    ax.set_xticks(np.arange(len(worlds)), [name(w) for w in worlds], fontsize=8)
+    ax.set_ylabel("t_err against GICP (%)")
+    seeds = ", ".join(map(str, record["sim_seeds"]))
+    ax.set_title(
+        f"{record['split']} split, simulation seeds {seeds}, commit {record['commit']}", fontsize=9
+    )
+    ax.legend(fontsize=7, loc="best")
+    return io.write_figure(path, fig)
+
+
 def write_tables(record: dict, out: Path) -> str:
     """Render ``record``'s split table and each model label's Table III into ``out``
     (tables.md, and tables.json with the Table III figures added); return the markdown."""
@@ -264,6 +304,8 @@ def write_tables(record: dict, out: Path) -> str:
     record["gains"] = {label: gains(record, label) for label in record["runs"] if label != "GICP"}
     for label, table in record["gains"].items():
         lines += gains_markdown(label, table)
+    if record["gains"]:
+        plot_gains(record, out / "gains.png")
     text = "\n".join(lines)
     io.write_atomic(out / "tables.md", text + "\n")
     io.write_atomic(out / "tables.json", json.dumps(record, indent=2))

@@ -217,5 +217,6 @@ def test_rebuild_writes_table_iii_from_saved_tables(tmp_path):
     text = (out / "tables.md").read_text()
     assert "| held-out sensor | -20.0 % | -10.0 % | no | yes |" in text
     assert "| 305 | -10.0 % | -10.0 % to -10.0 % | 0 of 2 |" in text
+    assert (out / "gains.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     saved = json.loads((out / "tables.json").read_text())
     assert saved["gains"]["GLOAM (m)"]["groups"]["all"]["worlds"] == worlds
