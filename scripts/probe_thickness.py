@@ -10,7 +10,8 @@ each point its own. For every ``--every``-th scan of each world this prints the 
 thickness of the voxel centres and the share of them thicker than ``--thick`` (the plane
 thickness at which GICP's batch error on the val worlds starts to move: docs/results.md, "What
 the learned covariances trade"), then the median in-plane ratio, the middle eigenvalue over the
-largest (GICP: 1, a disc; near 0, a line).
+largest (GICP: 1, a disc; near 0, a line); under "all", the same of every listed world's points
+together.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def learned_values(model, scan: np.ndarray, config) -> np.ndarray:
     )
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--sequences", required=True, help="comma-separated ids")
@@ -49,24 +50,30 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=10)
     parser.add_argument("--thick", type=float, default=0.0025)
     parser.add_argument("--out", type=Path)
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     config = load_config(args.config, TrainConfig).preprocess
     models = {label: _load(Path(path)) for label, path in (m.split("=", 1) for m in args.model)}
     names, result = args.sequences.split(","), {}
-    print("| model | " + " | ".join(names) + " |")
-    print("|" + "---|" * (len(names) + 1))
+    print("| model | " + " | ".join(names) + " | all |")
+    print("|" + "---|" * (len(names) + 2))
+
+    def stats(v: np.ndarray) -> dict:
+        t = v[:, 0] / v[:, 1]
+        return {
+            "median": float(np.median(t)),
+            "thick_share": float(np.mean(t > args.thick)),
+            "in_plane_median": float(np.median(v[:, 1] / v[:, 2])),
+        }
+
     for label, model in models.items():
-        row = {}
+        row, pooled = {}, []
         for name in names:
             dataset = open_dataset(args.data, name)
             v = np.concatenate([learned_values(model, dataset.frame(i)[0], config)
                                 for i in range(0, len(dataset), args.every)])  # fmt: skip
-            t = v[:, 0] / v[:, 1]
-            row[name] = {
-                "median": float(np.median(t)),
-                "thick_share": float(np.mean(t > args.thick)),
-                "in_plane_median": float(np.median(v[:, 1] / v[:, 2])),
-            }
+            row[name] = stats(v)
+            pooled.append(v)
+        row["all"] = stats(np.concatenate(pooled))  # the worlds' points together
         result[label] = row
         print(
             f"| {label} | "

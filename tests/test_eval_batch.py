@@ -2,6 +2,7 @@
 --plane-eps rows; probe_thickness.py, which loads models through it."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -85,3 +86,17 @@ def test_thickness_probe_and_the_thickness_cap(tiny_training):
     np.testing.assert_allclose(thickness(capped), 0.01, rtol=1e-5)
     kept = dataclasses.replace(model, max_thickness=0.01)
     np.testing.assert_allclose(thickness(kept), model.eps, rtol=1e-5)
+
+
+def test_thickness_probe_pools_the_listed_worlds(tiny_training, tmp_path):
+    """probe_thickness.py's "all" column: the statistics of every listed world's points
+    together (here one world listed twice: the same as the world's own)."""
+    probe = import_script("probe_thickness")
+    out = tmp_path / "thick.json"
+    root = tiny_training.config().data
+    argv = ["--data", root, "--sequences", "00,00", "--every", "5", "--out", str(out)]
+    probe.main([*argv, "--model", f"start={tiny_training.start}"])
+    row = json.loads(out.read_text())["start"]
+    assert row["all"] == row["00"]
+    assert row["all"]["median"] == pytest.approx(tiny_training.model.eps, rel=1e-5)
+    assert row["all"]["thick_share"] == 0.0
