@@ -431,6 +431,13 @@ def evaluate(
     }
 
 
+def format_spread(agg: dict[str, Any]) -> str:
+    """``mean ± std`` (3 decimals) of an error aggregated over runs, ``{"mean", "std"}`` as the
+    protocol's tables and test scores keep it; one run has no spread (``± n/a``)."""
+    std = "n/a" if agg.get("std") is None else f"{agg['std']:.3f}"
+    return f"{agg['mean']:.3f} ± {std}"
+
+
 def _plane_axes(*positions: NDArray[np.float64]) -> tuple[int, int]:
     """The two axes with the largest extent, in axis order (x-z for KITTI camera poses)."""
     pts = np.concatenate(positions, axis=0)

@@ -111,11 +111,6 @@ def aggregate(values: list[float]) -> dict:
     }
 
 
-def fmt_pm(agg: dict) -> str:
-    std = "n/a" if agg["std"] is None else f"{agg['std']:.3f}"
-    return f"{agg['mean']:.3f} ± {std}"
-
-
 def _key(path: Path) -> str:
     """A folder name per file or root: readable, and distinct for different paths."""
     return f"{path.name}-{hashlib.sha1(str(path.resolve()).encode()).hexdigest()[:8]}"
@@ -298,8 +293,8 @@ def write_tables(record: dict, out: Path) -> str:
         "|" + "---|" * len(head),
     ]
     for label, agg in record["summary"].items():
-        cells = [fmt_pm(agg["worlds"][s]["t_err"]) for s in worlds]
-        cells += [fmt_pm(agg["mean"]["t_err"]), str(agg["runs"])]
+        cells = [metrics.format_spread(agg["worlds"][s]["t_err"]) for s in worlds]
+        cells += [metrics.format_spread(agg["mean"]["t_err"]), str(agg["runs"])]
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     record["gains"] = {label: gains(record, label) for label in record["runs"] if label != "GICP"}
     for label, table in record["gains"].items():

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from repo_scripts import import_script
 
+from gloam_jax import metrics
 from gloam_jax.models import load_model, save_model, shipped_model_path
 from gloam_jax.simulate import simulate
 
@@ -25,7 +26,7 @@ def test_aggregate_is_mean_and_sample_std():
     assert agg["std"] == pytest.approx(np.sqrt(0.26 / 2), abs=1e-12)
     assert agg["n"] == 3
     one = make_tables.aggregate([0.3])
-    assert one["std"] is None and make_tables.fmt_pm(one) == "0.300 ± n/a"
+    assert one["std"] is None and metrics.format_spread(one) == "0.300 ± n/a"
 
 
 def _fake_root(path: Path, offset: int, worlds: tuple[str, ...]) -> Path:

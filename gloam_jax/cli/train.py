@@ -100,6 +100,7 @@ def model_info(
     """How a model file was made: backbone, training, selection and every test score."""
     import json
 
+    from gloam_jax.metrics import format_spread
     from gloam_jax.models import load_model
 
     def say(line: str) -> None:  # one line each, however narrow the terminal: easy to grep
@@ -145,8 +146,8 @@ def model_info(
     for s in scores:
         say(
             f"test ({s['method']}): worlds {_world_span(s['worlds'])}, simulation seeds "
-            f"{','.join(map(str, s['sim_seeds']))}: t_err {_mean_std(s['t_err'])} %, r_err "
-            f"{_mean_std(s['r_err'])} deg/100 m ({s['commit'].split()[0]}, {s['date'][:10]})"
+            f"{','.join(map(str, s['sim_seeds']))}: t_err {format_spread(s['t_err'])} %, r_err "
+            f"{format_spread(s['r_err'])} deg/100 m ({s['commit'].split()[0]}, {s['date'][:10]})"
         )
 
 
@@ -156,12 +157,6 @@ def _world_span(worlds: list[str]) -> str:
     consecutive = None not in ids and ids == list(range(ids[0], ids[0] + len(ids)))
     shown = f"{worlds[0]}-{worlds[-1]}" if consecutive and len(ids) > 1 else ", ".join(worlds)
     return f"{shown} ({len(worlds)})"
-
-
-def _mean_std(agg: dict) -> str:
-    """``mean ± std``; one run has no spread (``± n/a``)."""
-    std = "n/a" if agg.get("std") is None else f"{agg['std']:.3f}"
-    return f"{agg['mean']:.3f} ± {std}"
 
 
 @app.command(
