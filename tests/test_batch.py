@@ -85,6 +85,8 @@ def test_window_cache_round_trip(sim_sequence, tmp_path, data):
     again = load_windows(sim_sequence, ["00"], PREPROCESS, CONFIG, frames=12,
                                cache_dir=tmp_path)  # fmt: skip
     leaves = [jax.tree_util.tree_leaves((d.scans, d.pairs)) for d in (data, cached, again)]
+    # Bit for bit: `cached` is prepared by the same code from the same scans in this process as
+    # `data`, and `again` is its .npz read back (lossless).
     for a, b, c in zip(*leaves, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
         np.testing.assert_array_equal(np.asarray(b), np.asarray(c))
@@ -193,10 +195,13 @@ def test_ctrl_c_checkpoints_the_last_completed_step(tiny_training, tmp_path):
     trees, meta = load_checkpoint(run / CHECKPOINT, templates)
     assert meta["step"] == 1 and [h["step"] for h in meta["history"]] == [0, 1]
     assert json.loads((run / "history.json").read_text()) == meta["history"]
-    # The weights written are step 1's: they score what step 1's evaluation logged.
+    # The weights written are step 1's: they score what step 1's evaluation logged. The log
+    # scored the replicated weights inside train_grad, this the reloaded ones: possibly another
+    # compiled program, so float32 re-evaluation noise (~5e-6 relative, issue 45), 1e-4 is 20x.
     t_err = problem.training_loss(trees["params"]).t_err
-    assert t_err == pytest.approx(meta["history"][1]["t_err"], rel=1e-6)
-    assert t_err != pytest.approx(meta["history"][0]["t_err"], rel=1e-6)
+    assert t_err == pytest.approx(meta["history"][1]["t_err"], rel=1e-4)
+    # Step 0's score is 32 % away here: a tenth is 1000x the tolerance above.
+    assert t_err != pytest.approx(meta["history"][0]["t_err"], rel=0.1)
 
     # The rerun (the same prepared problem: nothing to recompile but the update) resumes at
     # step 1, its first evaluation being step 2's; interrupted there.
@@ -212,6 +217,8 @@ def test_ctrl_c_checkpoints_the_last_completed_step(tiny_training, tmp_path):
     assert len(calls) == 1
     again, meta_again = load_checkpoint(run / CHECKPOINT, templates)
     assert meta_again["step"] == 1 and meta_again["history"] == meta["history"]
+    # Bit for bit: nothing was computed in between; the rerun rewrote step 1's arrays as it
+    # loaded them (float32 through .npz is lossless).
     for a, b in zip(jax.tree_util.tree_leaves(again), jax.tree_util.tree_leaves(trees),
                     strict=True):  # fmt: skip
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -17,6 +17,7 @@ eval_batch = import_script("eval_batch")
 
 def test_a_model_file_loads_as_itself():
     loaded = eval_batch._load(shipped_model_path())
+    # Bit for bit: the same file read twice, nothing computed.
     np.testing.assert_array_equal(
         loaded.pca.components, load_model(shipped_model_path()).pca.components
     )
@@ -54,7 +55,9 @@ def test_plane_eps_rows_are_gicp_with_thicker_planes(tiny_training, tmp_path, mo
     assert rows["GICP, plane eps 0.001"]["mean"] == pytest.approx(gicp, rel=1e-4)
     assert abs(rows["GICP, plane eps 0.03"]["mean"] - gicp) > 1e-3 * gicp
     # The start's planes are GICP's, far thinner than the bound: the bounded row is the start's.
-    assert rows["start, planes <= 0.01"]["mean"] == pytest.approx(rows["start"]["mean"], rel=1e-6)
+    # The bound is another compiled program (its cap in it): float32 noise through the solves
+    # (~5e-6 relative, issue 45), 1e-4 as for the plane eps row above.
+    assert rows["start, planes <= 0.01"]["mean"] == pytest.approx(rows["start"]["mean"], rel=1e-4)
 
 
 def test_thickness_probe_and_the_thickness_cap(tiny_training):

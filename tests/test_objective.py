@@ -130,6 +130,8 @@ def test_validation_over_several_roots_scores_their_windows_together(roots, tmp_
     assert a[0] != pytest.approx(b[0], rel=1e-3)
     # Their windows' mean error, and the worse root's objective (here its mean t_err).
     got = both.validation_loss(gicp)
+    # The same evaluators on the same weights as a and b (bit for bit); 1e-6 covers only the
+    # float32 against float64 rounding of the mean and max (6e-8).
     assert got.t_err == pytest.approx((a[0] + b[0]) / 2, rel=1e-6)
     assert got.objective == pytest.approx(max(a[0], b[0]), rel=1e-6)
     # A root without the sequence stops the setup before any preparation.
@@ -164,8 +166,12 @@ def test_training_over_several_roots_uses_every_window(roots, tmp_path):
     a, both = one.evaluate_hard(gicp).t_err, two.evaluate_hard(gicp).t_err
     assert [w.name for w in two.data.windows] == ["00", "00"]
     # The first root's window as alone; the second its own (the cache key covers the poses).
-    assert both[0] == pytest.approx(a[0], rel=1e-6)
+    # One window and two are other batch shapes, so other compiled programs: float32 noise
+    # through the solves (~5e-6 relative, issue 45), 1e-4 is 20x. The second root's window is
+    # 130 % away here, 1e-3 still 10x the tolerance.
+    assert both[0] == pytest.approx(a[0], rel=1e-4)
     assert both[1] != pytest.approx(a[0], rel=1e-3)
+    # The same evaluator as `both`: only the float32 against float64 mean's rounding (6e-8).
     assert two.training_loss(gicp).t_err == pytest.approx(float(np.mean(both)), rel=1e-6)
     # Every root is checked before any preparation.
     with pytest.raises(InputError, match="nowhere: dataset root not found"):

@@ -116,6 +116,7 @@ def test_sharded_gradient_step_matches_one_device(runs):
     # Another fusion of the same sums (with its gradient, over the pairs in another order):
     # float32 noise.
     assert loss_4 == pytest.approx(loss_1, rel=1e-4)
+    # Bit for bit: the start's weights as loaded from the same model file, nothing computed.
     np.testing.assert_array_equal(four["before"], one["before"])
     assert np.all(np.isfinite(one["moment"])) and np.linalg.norm(one["moment"]) > 0
     # Float32 sums over the pairs in another order: agreement relative to the gradient's size.
