@@ -86,3 +86,61 @@ def test_public_api_resolves():
 def test_no_module_is_longer_than_600_lines():
     lengths = {p: len(p.read_text().splitlines()) for p in (ROOT / "gloam_jax").rglob("*.py")}
     assert max(lengths.values()) <= 600, max(lengths, key=lengths.get)
+
+
+def _module_level_imports(path: Path) -> set[str]:
+    """The gloam_jax modules that ``path`` imports at module level, ``if TYPE_CHECKING:`` blocks
+    included (an annotation-only import is still a dependency a reader follows)."""
+    import ast
+
+    names, body = set(), list(ast.parse(path.read_text()).body)
+    while body:
+        node = body.pop()
+        if isinstance(node, ast.If | ast.Try):
+            body += node.body + node.orelse
+        elif isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.update(f"{node.module}.{a.name}" for a in node.names)
+            names.add(node.module)
+    return {n for n in names if n.startswith("gloam_jax")}
+
+
+def _cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """Each cycle of ``edges`` as the path that closes it (depth first)."""
+    found, state = [], {}
+
+    def visit(node, path):
+        state[node] = "open"
+        for nxt in sorted(edges.get(node, ())):
+            if state.get(nxt) == "open":
+                found.append(path[path.index(nxt) :] + [nxt])
+            elif nxt not in state:
+                visit(nxt, path + [nxt])
+        state[node] = "done"
+
+    for node in sorted(edges):
+        if node not in state:
+            visit(node, [node])
+    return found
+
+
+def test_no_import_cycle():
+    root = Path(gloam_jax.__file__).parent
+    files = {}
+    for path in root.rglob("*.py"):
+        parts = path.relative_to(root.parent).with_suffix("").parts
+        files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    # A package's __init__ always loads before its modules: an import of an ancestor package
+    # (``from gloam_jax import io``) is not an edge back to it.
+    edges = {
+        name: {
+            m
+            for m in _module_level_imports(path) & files.keys()
+            if not f"{name}.".startswith(f"{m}.")
+        }
+        for name, path in files.items()
+    }
+    assert _cycles(edges) == []
+    # the check sees a cycle where there is one
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c", "a"]]

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gloam_jax.datasets import Dataset, register
+from gloam_jax.datasets.base import Dataset, register
 from gloam_jax.errors import InputError
 from gloam_jax.io import read_calib, read_kitti_poses, read_times
 from gloam_jax.io.files import load_npy

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gloam_jax.datasets import Dataset, register
+from gloam_jax.datasets.base import Dataset, register
 from gloam_jax.errors import InputError
 from gloam_jax.io import KittiSequence
 

@@ -14,7 +14,7 @@ Pair ``b`` registers source scan ``i + 1`` to target scan ``i``: its estimate is
 The pairs are independent, so they shard over a device mesh (:func:`pair_mesh`, by default
 every local device): each device registers its slice of the pairs against a copy of the
 scans, the pair count padded to a multiple of the device count with copies of
-the last pair, whose estimates no window reads. See docs/sharding.md.
+the last pair, whose estimates no window reads. See docs/scaling.md, "Sharding".
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from gloam_jax.errors import InputError
 from gloam_jax.gicp import Cloud, GICPConfig, gicp_round
 from gloam_jax.io import lidar_to_cam_poses
 from gloam_jax.learned import Learned, attributes
-from gloam_jax.training.head import HeadData, with_head
+from gloam_jax.training.head import HeadData, head_features
 from gloam_jax.training.losses import TRAINING_FRACTIONS, SegmentPlan, chain, segment_errors
 from gloam_jax.training.objective import objective
 
@@ -110,6 +110,16 @@ class PairBatch(NamedTuple):
     valid: Array
     T_target_map: Array
     T_init: Array
+
+
+def with_head(learned: Learned, scans: ScanSet, data: HeadData | None) -> ScanSet:
+    """``scans`` with their PCA features recomputed from ``learned.head`` when it is set."""
+    if learned.head is None:
+        return scans
+    if data is None:
+        raise InputError(None, "fine-tuning the backbone's last layer needs its HeadData")
+    features = head_features(learned.head, data, scans.mask.shape)
+    return scans._replace(pca=features.astype(scans.pca.dtype))
 
 
 def select_rows(pairs: PairBatch, index: Array) -> PairBatch:

@@ -16,7 +16,7 @@ averaged per centre by :func:`gloam_jax.preprocess.preprocess_scan`), for the cu
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -29,11 +29,8 @@ from gloam_jax.features import NetBackbone
 from gloam_jax.features.net import embed, run_hidden
 from gloam_jax.features.pca import FeaturePCA
 from gloam_jax.geometry import real_dtype
-from gloam_jax.learned import Head, Learned
+from gloam_jax.learned import Head
 from gloam_jax.preprocess import PreprocessConfig, centre_rows
-
-if TYPE_CHECKING:
-    from gloam_jax.training.batch import ScanSet
 
 
 class HeadData(NamedTuple):
@@ -116,13 +113,3 @@ def head_features(head: Head, data: HeadData, shape: tuple[int, int]) -> Array:
     S, Q = shape
     out = jax.ops.segment_sum(data.weight[:, None] * f[data.voxel], data.centre, num_segments=S * Q)
     return out.reshape(S, Q, -1)
-
-
-def with_head(learned: Learned, scans: ScanSet, data: HeadData | None) -> ScanSet:
-    """``scans`` with their PCA features recomputed from ``learned.head`` when it is set."""
-    if learned.head is None:
-        return scans
-    if data is None:
-        raise InputError(None, "fine-tuning the backbone's last layer needs its HeadData")
-    features = head_features(learned.head, data, scans.mask.shape)
-    return scans._replace(pca=features.astype(scans.pca.dtype))
