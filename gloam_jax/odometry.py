@@ -257,7 +257,8 @@ class Odometry:
         """Frames 0 and 1 again, both deskewed with the motion between them (the first
         velocity). Before it was known they were not deskewed; left so, they would be the map
         that the next, deskewed, scans register to, which biases those registrations (a jump
-        of 19 cm at 8.5 m/s on a simulated urban drive, docs/peers.md). Returns frame 1's pose."""
+        of 19 cm at 8.5 m/s on a simulated urban drive, experiments/startup_deskew). Returns
+        frame 1's pose."""
         start, velocity = self._start, self.velocity
         self._start = []
         # As at the first pass but for the deskew: the same motion prior (none) for frame 1.

@@ -1,6 +1,6 @@
 """Feature extraction time per scan: the ``geometric`` and ``net`` backbones in one run.
 
-    python scripts/bench_backbones.py data/netodo --sequence 00 --out docs/bench_backbones.json
+    python scripts/bench_backbones.py data/netodo --sequence 00 --out results/bench_backbones.json
 
 Each backbone extracts features of the same full scans (raw ``(N, 4)``, as the odometry
 hands them over), taking turns scan by scan so that both see the same machine load; the

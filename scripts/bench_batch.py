@@ -1,6 +1,6 @@
 """Batch evaluation throughput: the same registrations vmapped at once and one at a time.
 
-    python scripts/bench_batch.py --config configs/train_tpe.yaml --out docs/bench_batch.json
+    python scripts/bench_batch.py --config configs/train_tpe.yaml --out results/bench_batch.json
 
 Prepares the training windows of the config (cached with ``--cache``), then registers every
 pair (a) all at once, ``jit(vmap(register_pair))``, (b) in a Python loop over the same

@@ -1,7 +1,7 @@
 """TPE trials per minute with 1 and with N worker processes on this machine, in one run.
 
     python scripts/bench_tpe_workers.py --config RUN.yaml --cache CACHE --trials 300 \
-        --workers 1,2 --repeats 2 [--storage postgresql://...] --out docs/bench_tpe_workers.json
+        --workers 1,2 --repeats 2 [--storage postgresql://...] --out results/workers.json
 
 Each run is the whole ``gloam train --mode tpe`` command (interpreter start, loading the
 prepared windows from ``--cache``, every trial, the export) on a fresh study; the worker

@@ -1,6 +1,6 @@
 """Our GICP against small_gicp, KISS-ICP and GenZ-ICP on the same raw scans, in one run.
 
-    python scripts/compare_peers.py data/val_worlds --sequences 201,202 --out docs/peers_val \\
+    python scripts/compare_peers.py data/val_worlds --sequences 201,202 --out results/peers_val \\
         [--methods gicp,small_gicp,kiss-icp,genz-icp] [--frames 100] \\
         [--variant 'voxel025={preprocess: {downsampling_resolution: 0.25}}']
 

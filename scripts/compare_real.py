@@ -1,7 +1,7 @@
 """Real scans without ground truth: each method's frame-to-frame motion against small_gicp's.
 
     python scripts/compare_real.py ../shared/data/real_kitti16 --methods gicp,gloam,gloam_net \
-        --out docs/real_agreement.json
+        --out experiments/real_agreement/real_agreement.json
 
 Every method runs ``gloam run``'s pipeline with ``configs/<method>.yaml`` on the same scans
 (any dataset ``gloam run`` reads); the reference is small_gicp's GICP frame to frame (0.25 m

@@ -1,7 +1,7 @@
 """TPE against gradient training on the same problem: training loss against wall time.
 
-    python scripts/compare_training.py runs/tpe runs/grad --plot docs/img/training.png \\
-        --out docs/bench_training.json
+    python scripts/compare_training.py runs/tpe runs/grad --plot results/training.png \\
+        --out results/bench_training.json
 
 Reads each run folder's ``history.json`` (the training t_err with hard association, measured
 identically by both modes, and the wall time of the training work). Reports TPE's best loss and

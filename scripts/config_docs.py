@@ -43,9 +43,9 @@ scans), the azimuth for the KITTI layout without them (taken as motion-distorted
 simulator writes it), and nothing otherwise; the run summary and `metrics.json` (`deskew`) say
 which was used and why. KITTI odometry's own readme, as quoted in public issue threads, says
 its Velodyne scans were already egomotion-compensated, and 16 real KITTI scans fit the map no
-worse without deskew (`scripts/probe_deskew_fit.py`, [peers.md](peers.md)): for the real
-benchmark's scans `deskew: off` may be right (unmeasured: no ground truth here). Choosing by
-that fit automatically was tried and failed on the test worlds (peers.md).
+worse without deskew ([experiments/undistorted_scans](../experiments/undistorted_scans/README.md)):
+for the real benchmark's scans `deskew: off` may be right (unmeasured: no ground truth here).
+Choosing by that fit automatically was tried and failed on the test worlds (same experiment).
 Per-point times may be seconds from the sweep's start, from mid-sweep or before its end, a
 [0, 1] fraction, or absolute seconds / nanoseconds (also ms, us): like KISS-ICP, they are
 mapped by their span onto one sweep of `preprocess.sweep_duration`, and the convention found

@@ -214,21 +214,72 @@ def test_compilation_cache_lives_in_the_user_cache_and_can_be_turned_off(tmp_pat
         jax.config.update("jax_persistent_cache_min_compile_time_secs", before[1])
 
 
+def _config_class(path):
+    from gloam_jax.odometry import OdometryConfig
+    from gloam_jax.training.config import TrainConfig
+
+    return TrainConfig if path.stem.startswith("train") else OdometryConfig
+
+
 def test_every_shipped_config_loads():
-    """Each YAML under gloam_jax/configs/ builds its dataclass, its base chain included."""
+    """Each YAML under gloam_jax/configs/ builds its dataclass, its base chain included: the
+    method configs and the few training configs a user starts from."""
     from pathlib import Path
 
     import gloam_jax
     from gloam_jax.config import load_config
-    from gloam_jax.odometry import OdometryConfig
+
+    paths = sorted((Path(gloam_jax.__file__).parent / "configs").glob("*.yaml"))
+    assert {"gicp", "gicp_da", "gicp_ce", "gloam", "train_grad", "train_tpe", "train_protocol"} <= {
+        p.stem for p in paths
+    }
+    assert len(paths) <= 10
+    for path in paths:
+        load_config(path.stem, _config_class(path))
+
+
+def test_every_experiment_config_loads_from_its_folder():
+    """The experiments' configs load with --config PATH, their bases read relative to them."""
+    from pathlib import Path
+
+    from gloam_jax.config import load_config
+
+    paths = sorted((Path(__file__).resolve().parents[1] / "experiments").rglob("*.yaml"))
+    assert len(paths) >= 15
+    for path in paths:
+        config = load_config(str(path), _config_class(path))
+        if path.stem.endswith("_warmup"):
+            assert config.grad.warmup_steps == 20 and config.grad.steps == 60
+
+
+def test_the_shipped_protocol_configs_are_the_experiments_that_made_the_shipped_models():
+    """configs/train_protocol.yaml and train_protocol_net.yaml are written out in one file each;
+    they resolve to the same settings as the experiment chains that trained the shipped models,
+    and to the settings recorded in those model files."""
+    from pathlib import Path
+
+    from gloam_jax.config import load_config
+    from gloam_jax.models import load_model
     from gloam_jax.training.config import TrainConfig
 
-    names = sorted(p.stem for p in (Path(gloam_jax.__file__).parent / "configs").glob("*.yaml"))
-    assert len(names) >= 15
-    for name in names:
-        config = load_config(name, TrainConfig if name.startswith("train") else OdometryConfig)
-        if name.endswith("_warmup"):
-            assert config.grad.warmup_steps == 20 and config.grad.steps == 60
+    experiments = Path(__file__).resolve().parents[1] / "experiments"
+    pairs = {
+        "train_protocol": ("w11_warmup/train_protocol_11_warmup.yaml", "default"),
+        "train_protocol_net": ("net_protocol/train_protocol_net_rank_finetune.yaml", "net"),
+    }
+    for shipped, (chain, model) in pairs.items():
+        config = load_config(shipped, TrainConfig)
+        assert config == load_config(str(experiments / chain), TrainConfig)
+        recorded = load_model(model).provenance["config"]
+        assert recorded["sequences"] == list(config.sequences)
+        assert recorded["validation"] == list(config.validation)
+        # (the net's model predates the warm-up setting, whose default 0 is no warm-up)
+        assert (recorded["grad"].get("warmup_steps") or 0) == config.grad.warmup_steps
+        assert recorded["grad"]["head_learning_rate"] == config.grad.head_learning_rate
+        assert (recorded["backbone"], recorded["backbone_weights"]) == (
+            config.backbone,
+            config.backbone_weights,
+        )
 
 
 def test_model_info_says_how_a_model_was_made(tmp_path):

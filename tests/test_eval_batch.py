@@ -25,7 +25,7 @@ def test_a_model_file_loads_as_itself():
 
 def test_a_fine_tuning_runs_checkpoint_is_refused_in_one_line(tmp_path):
     # Its MLPs fit the fine-tuned layer's features; scored on the frozen ones they would mislead.
-    config = load_config("train_protocol_net_finetune", TrainConfig)
+    config = load_config("train_protocol_net", TrainConfig)  # fine-tunes the net's last layer
     dump_config(config, tmp_path / "config.yaml")
     (tmp_path / "checkpoint.npz").write_bytes(b"")
     with pytest.raises(SystemExit) as refused:
@@ -67,7 +67,7 @@ def test_thickness_probe_and_the_thickness_cap(tiny_training):
     from gloam_jax.learned import plane_output
     from gloam_jax.preprocess import PreprocessConfig
 
-    probe = import_script("probe_thickness")
+    probe = import_script("probe_thickness", experiment="plane_thickness")
     model = tiny_training.model
     scan = open_dataset(tiny_training.config().data, "00").frame(0)[0]
     config = PreprocessConfig()
@@ -94,7 +94,7 @@ def test_thickness_probe_and_the_thickness_cap(tiny_training):
 def test_thickness_probe_pools_the_listed_worlds(tiny_training, tmp_path):
     """probe_thickness.py's "all" column: the statistics of every listed world's points
     together (here one world listed twice: the same as the world's own)."""
-    probe = import_script("probe_thickness")
+    probe = import_script("probe_thickness", experiment="plane_thickness")
     out = tmp_path / "thick.json"
     root = tiny_training.config().data
     argv = ["--data", root, "--sequences", "00,00", "--every", "5", "--out", str(out)]

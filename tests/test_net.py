@@ -1,6 +1,7 @@
 """The ``net`` backbone: its network, training step, weight files and use inside ``gloam run``."""
 
 import json
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -244,9 +245,10 @@ def test_shipped_network_loads_and_says_how_it_was_trained():
     assert backbone.net.config.intensity
     from gloam_jax.training.config import TrainConfig
 
-    picked = load_config("train_protocol_net_noint_finetune", TrainConfig)
+    experiment = Path(__file__).resolve().parents[1] / "experiments" / "net_protocol"
+    picked = load_config(str(experiment / "train_protocol_net_noint_finetune.yaml"), TrainConfig)
     assert (picked.backbone, picked.backbone_weights) == ("net", "no-intensity")
-    picked = load_config("train_protocol_net_rank_finetune", TrainConfig)
+    picked = load_config("train_protocol_net", TrainConfig)  # the shipped net model's
     assert (picked.backbone, picked.backbone_weights) == ("net", "intensity-rank")
     assert picked.grad.head_learning_rate == 0.001
     with pytest.raises(InputError, match="backbone_weights chooses the net"):

@@ -206,8 +206,11 @@ def test_a_config_based_on_another_changes_only_what_it_states(tmp_path):
     assert load_config("gicp_ce") == dataclasses.replace(gicp, method="gicp_ce", model="default")
     assert load_config("gloam").gicp == dataclasses.replace(gicp.gicp, num_candidates=5)
     assert load_config("gloam_net") == dataclasses.replace(load_config("gloam"), model="net")
-    protocol = load_config("train_protocol", TrainConfig)
-    assert load_config("train_protocol_net_finetune", TrainConfig) == dataclasses.replace(
+    experiments = Path(__file__).resolve().parents[1] / "experiments"
+    first = experiments / "protocol_validation/train_protocol.yaml"
+    protocol = load_config(str(first), TrainConfig)
+    finetune = experiments / "net_protocol/train_protocol_net_finetune.yaml"
+    assert load_config(str(finetune), TrainConfig) == dataclasses.replace(
         protocol, backbone="net", grad=dataclasses.replace(protocol.grad, head_learning_rate=1e-3)
     )
     # a path relative to the file, one nested field replaced, the section's others kept

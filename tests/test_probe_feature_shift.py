@@ -1,4 +1,5 @@
-"""scripts/probe_feature_shift.py: per-feature shifts in reference standard deviations."""
+"""experiments/invariant_features/probe_feature_shift.py: per-feature shifts in reference
+standard deviations."""
 
 import json
 import sys
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 from repo_scripts import import_script
 
-probe = import_script("probe_feature_shift")
+probe = import_script("probe_feature_shift", experiment="invariant_features")
 
 
 def test_shifts_are_in_reference_standard_deviations():

@@ -1,5 +1,6 @@
-"""scripts/probe_transfer.py: the start, the trained update, its reverse, fractions of it and
-random-sign updates of a gradient run, each scored as the run scores its weights."""
+"""experiments/bounded_planes/probe_transfer.py: the start, the trained update, its reverse,
+fractions of it and random-sign updates of a gradient run, each scored as the run scores its
+weights."""
 
 import json
 import sys
@@ -11,7 +12,7 @@ from gloam_jax.training.config import GradConfig
 from gloam_jax.training.grad import train_grad
 from gloam_jax.training.problem import setup
 
-probe = import_script("probe_transfer")
+probe = import_script("probe_transfer", experiment="bounded_planes")
 
 # A float32 objective re-evaluated by another compiled program (the probe's unsharded weights,
 # against the replicated ones the run scored): each op may round differently by an ulp (6e-8),
@@ -72,7 +73,7 @@ def test_window_gradients_average_to_the_training_loss_gradient(tiny_training, t
 
     from gloam_jax.training import batch
 
-    gradients = import_script("probe_gradients")
+    gradients = import_script("probe_gradients", experiment="bounded_planes")
     cfg = tiny_training.config(mode="grad", objective="gicp_ratio")
     problem = setup(cfg, tmp_path / "run", cache_dir=tmp_path / "cache")
     rows = gradients.window_gradients(problem, problem.data, problem.reference)

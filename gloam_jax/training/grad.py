@@ -14,7 +14,7 @@ are kept. Checkpoints are written atomically; a rerun in the same folder resumes
 after Ctrl-C, which writes the last completed step before it propagates.
 
 The registrations of a step are split over a device mesh (default: every local device, so
-several GPUs share the pairs and one CPU changes nothing): see docs/sharding.md.
+several GPUs share the pairs and one CPU changes nothing): see docs/scaling.md, "Sharding".
 """
 
 from __future__ import annotations
