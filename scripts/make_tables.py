@@ -54,19 +54,39 @@ from gloam_jax.config import load_config
 from gloam_jax.models import load_model, save_model, shipped_model_path
 from gloam_jax.pipeline import run_sequence
 from gloam_jax.training.losses import TRAINING_FRACTIONS, scaled_lengths
-from gloam_jax.training.protocol import SPLITS, TEST_SEQUENCES, TRAIN_SEQUENCES, world_groups
+from gloam_jax.training.protocol import (
+    LONG_SPLITS,
+    SPLITS,
+    TEST_SEQUENCES,
+    TRAIN_SEQUENCES,
+    world_groups,
+)
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
-def window_rte(gt: np.ndarray, est: np.ndarray) -> dict:
-    """Devkit t_err (%) and r_err (deg/100 m) over segments scaled to the window."""
-    lengths = sorted({max(1, round(x)) for x in scaled_lengths(gt, TRAINING_FRACTIONS)})
-    r = metrics.kitti_rte(gt, est, lengths=lengths)
-    return {"t_err": r.t_err_percent, "r_err": r.r_err_deg_per_100m, "lengths_m": lengths}
+def window_rte(gt: np.ndarray, est: np.ndarray, devkit: bool = False) -> dict:
+    """Devkit t_err (%) and r_err (deg/100 m) over segments scaled to the window or, with
+    ``devkit`` (the long splits), over the devkit's own 100-800 m; t_err per length too."""
+    if devkit:
+        r = metrics.kitti_rte(gt, est)
+    else:
+        lengths = sorted({max(1, round(x)) for x in scaled_lengths(gt, TRAINING_FRACTIONS)})
+        r = metrics.kitti_rte(gt, est, lengths=lengths)
+    by_length = {str(k): v["t_err_percent"] for k, v in r.per_length.items()}
+    return {"t_err": r.t_err_percent, "r_err": r.r_err_deg_per_100m,
+            "lengths_m": [int(k) for k in r.per_length], "t_err_by_length": by_length}  # fmt: skip
 
 
-def run(data: Path, sequence: str, method: str, weights: Path | None, out: Path, mode: str) -> dict:
+def run(
+    data: Path,
+    sequence: str,
+    method: str,
+    weights: Path | None,
+    out: Path,
+    mode: str,
+    devkit: bool = False,
+) -> dict:
     """One odometry run (cached in ``out``), scored by :func:`window_rte`."""
     result_path = out / "table_metrics.json"
     if result_path.is_file():
@@ -78,7 +98,7 @@ def run(data: Path, sequence: str, method: str, weights: Path | None, out: Path,
     seq = io.KittiSequence(data, sequence)
     est = io.read_kitti_poses(out / f"{sequence}_poses_kitti.txt")
     row = {
-        **window_rte(seq.gt_poses_cam[: len(est)], est),
+        **window_rte(seq.gt_poses_cam[: len(est)], est, devkit),
         "median_ms_per_frame": result["median_ms_per_frame"],
         "median_ms_features": result.get("median_ms_features"),
         "degenerate_frames": len(result["degenerate_frames"]),
@@ -299,12 +319,45 @@ def write_tables(record: dict, out: Path) -> str:
     record["gains"] = {label: gains(record, label) for label in record["runs"] if label != "GICP"}
     for label, table in record["gains"].items():
         lines += gains_markdown(label, table)
+    lines += by_length_markdown(record)
     if record["gains"]:
         plot_gains(record, out / "gains.png")
     text = "\n".join(lines)
     io.write_atomic(out / "tables.md", text + "\n")
     io.write_atomic(out / "tables.json", json.dumps(record, indent=2))
     return text
+
+
+def by_length(record: dict, label: str) -> dict[str, float]:
+    """Mean t_err (%) of ``label`` per devkit segment length over its runs and the worlds
+    that have segments of that length (a drive shorter than the length has none)."""
+    values: dict[str, list[float]] = {}
+    for r in record["runs"][label]:
+        for row in r["worlds"].values():
+            for length, t in row.get("t_err_by_length", {}).items():
+                values.setdefault(length, []).append(t)
+    return {k: float(np.mean(v)) for k, v in sorted(values.items(), key=lambda kv: int(kv[0]))}
+
+
+def by_length_markdown(record: dict) -> list[str]:
+    """t_err per segment length for each label, and each one's change against GICP: where a
+    model gains (short segments) and where it loses (the long ones KITTI scores), or not."""
+    if record["split"] not in LONG_SPLITS:  # window-scaled lengths differ between worlds
+        return []
+    table = {label: by_length(record, label) for label in record["runs"]}
+    lengths = list(table["GICP"])
+    head = ["method", *(f"{k} m" for k in lengths)]
+    lines = ["", "t_err (%) per segment length (runs and worlds pooled; change against GICP)", ""]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for label, row in table.items():
+        cells = []
+        for k in lengths:
+            t, g = row.get(k), table["GICP"][k]
+            change = "" if label == "GICP" or t is None else f" ({100 * (t / g - 1):+.0f} %)"
+            cells.append("-" if t is None else f"{t:.3f}{change}")
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    record["by_length"] = table
+    return lines
 
 
 def recorded_test_scores(path: Path) -> list[dict]:
@@ -340,7 +393,8 @@ def split_tables(args: argparse.Namespace, models: dict[str, list[Path]]) -> dic
         if unknown:
             raise SystemExit(f"--sequences: not in the {args.split} split: {', '.join(unknown)}")
         worlds = tuple(s for s in worlds if s in chosen)
-    testing = args.split == "test"
+    testing = args.split.startswith("test")
+    devkit = args.split in LONG_SPLITS  # KITTI-length worlds: the devkit's own segments
     files = sorted({f for fs in models.values() for f in fs})
     if testing:
         refuse_rescoring(files, args.force)
@@ -358,7 +412,7 @@ def split_tables(args: argparse.Namespace, models: dict[str, list[Path]]) -> dic
                 scored = {}
                 for s in worlds:
                     print(f"{label} {f or ''} {data} {s} ...", flush=True)
-                    scored[s] = run(data, s, method, f, folder / s, args.mode)
+                    scored[s] = run(data, s, method, f, folder / s, args.mode, devkit)
                 runs.setdefault(label, []).append(
                     {"model": str(f) if f else None, "data": str(data), "worlds": scored}
                 )
@@ -394,7 +448,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--ablation", help="label of the --model for Table II")
     parser.add_argument("--mode", default="frame_to_model", help="or frame_to_frame")
     parser.add_argument("--sequences", default=None, help="only these (default: all)")
-    parser.add_argument("--split", choices=("val", "test"), help="score the protocol's worlds")
+    parser.add_argument("--split", choices=tuple(s for s in SPLITS if s != "train"),
+                        help="score the protocol's worlds (val_long, test_long: KITTI-length "
+                        "drives on the devkit's 100-800 m segments)")  # fmt: skip
     parser.add_argument("--force", action="store_true", help="score a model on test again")
     parser.add_argument("--out", type=Path, default=Path("results/tables"))
     parser.add_argument("--rebuild", action="store_true",

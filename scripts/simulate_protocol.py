@@ -8,9 +8,11 @@ Without --split: one window per KITTI sequence 00-10, in a scene style like the 
     python scripts/simulate_protocol.py --out data/protocol --sequences 31,33,35,37,39
 
 With --split train|val|test: that split's worlds (SPLITS), each a scene family, sensor,
-distortion and speed drawn from its id, recorded in sequences/NNN/world.json:
+distortion and speed drawn from its id, recorded in sequences/NNN/world.json; val_long and
+test_long are the KITTI-length drives (1000 frames, or to the trajectory's end):
 
     python scripts/simulate_protocol.py --out data/protocol2 --split val [--sequences 201,203]
+    python scripts/simulate_protocol.py --out data/long --split val_long
 
 Resumable: a sequence already complete is skipped, an interrupted one continues (each file
 is written atomically).
@@ -22,10 +24,12 @@ import argparse
 import time
 from pathlib import Path
 
+from gloam_jax.io import read_kitti_poses
 from gloam_jax.simulate import simulate
 from gloam_jax.training.protocol import (
     DEFAULT_FRAMES,
     EXTRA_TRAINING_WINDOWS,
+    LONG_FRAMES,
     SPLITS,
     TEST_SEQUENCES,
     TRAIN_SEQUENCES,
@@ -68,17 +72,22 @@ def simulate_split(args: argparse.Namespace) -> None:
             raise SystemExit(f"not in the {args.split} split: {', '.join(unknown)}")
         worlds = tuple(w for w in worlds if w.sequence in wanted)
     for world in worlds:
-        spec = world_spec(world, args.frames or WORLD_FRAMES, args.seed)
+        poses = args.poses / f"{world.trajectory}.txt"
+        if not poses.is_file():
+            raise SystemExit(f"{poses}: no such KITTI pose file (--poses)")
+        positions = read_kitti_poses(poses)[:, :3, 3]
+        spec = world_spec(world, args.frames, args.seed, positions=positions)
         t0 = time.perf_counter()
         simulate(
             args.out,
             world=spec,
-            trajectory=args.poses / f"{world.trajectory}.txt",
+            trajectory=poses,
             sequence=world.sequence,
         )
         print(
             f"{world.sequence} ({args.split}: {world.family}, {spec.sensor.name}, KITTI "
-            f"{world.trajectory} from pose {world.start}, {spec.speed_scale:g}x speed, "
+            f"{world.trajectory} from pose {world.start}, {spec.frames} frames at "
+            f"{spec.speed_scale:g}x speed, "
             f"distortion {'on' if spec.motion_distortion else 'off'}): "
             f"{time.perf_counter() - t0:.1f} s",
             flush=True,
@@ -89,8 +98,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=Path("data/protocol"))
     parser.add_argument("--split", choices=tuple(SPLITS), help="simulate this split's worlds")
-    parser.add_argument("--frames", type=int, help=f"default {DEFAULT_FRAMES}, splits "
-                        f"{WORLD_FRAMES}")  # fmt: skip
+    frames = f"default {DEFAULT_FRAMES}; a split's worlds {WORLD_FRAMES}, long ones {LONG_FRAMES}"
+    parser.add_argument("--frames", type=int, help=f"{frames} or to the trajectory's end")
     parser.add_argument("--poses", type=Path, default=POSES, help="KITTI ground-truth poses")
     parser.add_argument("--sequences", help="only these ids (comma-separated)")
     parser.add_argument("--seed", type=int, default=0, help="added to every sequence's seed")

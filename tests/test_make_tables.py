@@ -43,7 +43,8 @@ def test_split_aggregates_over_model_files_and_simulation_seeds(tmp_path, monkey
     # t_err of a run: GICP 1.0 + seed; model file a: 0.5 + seed, b: 0.7 + seed; world 203 +0.2
     base = {None: 1.0, "a.npz": 0.5, "b.npz": 0.7}
 
-    def fake_run(data, sequence, method, weights, out, mode):
+    def fake_run(data, sequence, method, weights, out, mode, devkit):
+        assert not devkit  # the short val split: window-scaled segments
         t = base[None if weights is None else weights.name] + roots.index(data)
         t += 0.2 * (sequence == "203")
         return {"t_err": t, "r_err": 2 * t}
@@ -221,3 +222,35 @@ def test_rebuild_writes_table_iii_from_saved_tables(tmp_path):
     assert (out / "gains.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     saved = json.loads((out / "tables.json").read_text())
     assert saved["gains"]["GLOAM (m)"]["groups"]["all"]["worlds"] == worlds
+
+
+def test_long_splits_score_devkit_lengths_and_tabulate_them_per_length():
+    # a straight 1 km drive, 1 m a frame; the estimate stretched by 1 %: at every devkit
+    # length, none shortened, the devkit's segment of L m ends L + 1 m on (the first frame past
+    # L), its error 1 % of that over L
+    gt = np.tile(np.eye(4), (1001, 1, 1))
+    gt[:, 2, 3] = np.arange(1001.0)
+    est = gt.copy()
+    est[:, 2, 3] *= 1.01
+    row = make_tables.window_rte(gt, est, devkit=True)
+    assert row["lengths_m"] == [100, 200, 300, 400, 500, 600, 700, 800]
+    for length in row["lengths_m"]:  # float32 sums, as the devkit's
+        assert row["t_err_by_length"][str(length)] == pytest.approx((length + 1) / length, rel=1e-4)
+    assert 1.0 < row["t_err"] < 1.01
+    short = make_tables.window_rte(gt, est)  # window-scaled: 10-80 % of the path
+    assert short["lengths_m"] == [100, 200, 300, 400, 500, 600, 700, 800]  # 1 km: the same
+    assert make_tables.window_rte(gt[:301], est[:301])["lengths_m"][0] == 30
+    # per length: pooled over runs and worlds, against GICP; a world too short has no 800 m
+    worlds = ["401", "402"]
+
+    def runs(t100, t800):
+        rows = {"401": {"t_err_by_length": {"100": t100, "800": t800}},
+                "402": {"t_err_by_length": {"100": t100}}}  # fmt: skip
+        return [{"model": None, "data": "d", "worlds": rows}]
+
+    record = {"split": "val_long", "worlds": worlds,
+              "runs": {"GICP": runs(1.0, 2.0), "GLOAM (m)": runs(0.5, 3.0)}}  # fmt: skip
+    text = "\n".join(make_tables.by_length_markdown(record))
+    assert record["by_length"]["GLOAM (m)"] == {"100": 0.5, "800": 3.0}
+    assert "| GLOAM (m) | 0.500 (-50 %) | 3.000 (+50 %) |" in text
+    assert make_tables.by_length_markdown({**record, "split": "val"}) == []

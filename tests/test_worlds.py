@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from shared_data import shared_path
 from test_simulate import flat_scene, straight_trajectory, world_points
 from typer.testing import CliRunner
 
@@ -38,6 +39,8 @@ from gloam_jax.simulate.world import (
 from gloam_jax.training.protocol import (
     HELD_OUT_FAMILY,
     HELD_OUT_SENSOR,
+    LONG_FRAMES,
+    LONG_METRES,
     SPLITS,
     TEST_SEQUENCES,
     TRAIN_SEQUENCES,
@@ -171,26 +174,58 @@ def test_splits_leave_one_family_and_one_sensor_to_test():
     worlds = [w for split in SPLITS.values() for w in split]
     assert len({w.sequence for w in worlds}) == len(worlds)
     seen = {s: {(w.family, w.sensor) for w in SPLITS[s]} for s in SPLITS}
-    for split in ("train", "val"):
+    for split in ("train", "val", "val_long"):
         assert HELD_OUT_FAMILY not in {f for f, _ in seen[split]}
         assert HELD_OUT_SENSOR not in {s for _, s in seen[split]}
         assert {w.trajectory for w in SPLITS[split]} <= set(TRAIN_SEQUENCES)
-    test = SPLITS["test"]
-    assert {w.trajectory for w in test} <= set(TEST_SEQUENCES)
-    assert HELD_OUT_FAMILY in {w.family for w in test}
-    assert HELD_OUT_SENSOR in {w.sensor for w in test}
-    assert any(not w.motion_distortion for w in test)
-    # Held out alone and together; every training family and sensor is tested too.
-    assert {(w.family == HELD_OUT_FAMILY, w.sensor == HELD_OUT_SENSOR) for w in test} == {
-        (True, True), (True, False), (False, True), (False, False)}  # fmt: skip
-    assert {f for f, _ in seen["train"]} <= {w.family for w in test}
-    # Validation windows share no pose with a training window of the same trajectory.
+    for test in (SPLITS["test"], SPLITS["test_long"]):
+        assert {w.trajectory for w in test} <= set(TEST_SEQUENCES)
+        assert HELD_OUT_FAMILY in {w.family for w in test}
+        assert HELD_OUT_SENSOR in {w.sensor for w in test}
+        assert any(not w.motion_distortion for w in test)
+        # Held out alone and together; every training family and sensor is tested too.
+        assert {(w.family == HELD_OUT_FAMILY, w.sensor == HELD_OUT_SENSOR) for w in test} == {
+            (True, True), (True, False), (False, True), (False, False)}  # fmt: skip
+        assert {f for f, _ in seen["train"]} <= {w.family for w in test}
+    # Short validation windows share no pose with a training window of the same trajectory.
+    short = [w for split in ("train", "val", "test") for w in SPLITS[split]]
     longest = max(int(np.ceil(w.frames * w.speed_scale)) + 2
-                  for w in map(world_spec, worlds))  # fmt: skip
+                  for w in map(world_spec, short))  # fmt: skip
     for v in SPLITS["val"]:
         for t in SPLITS["train"]:
             assert v.trajectory != t.trajectory or abs(v.start - t.start) > longest
+    test = SPLITS["test"]
     assert world_spec(test[0]) == world_spec(test[0]) != world_spec(test[0], seed_offset=1)
+
+
+def test_long_worlds_drive_kitti_lengths_and_stop_where_their_trajectory_does():
+    """At least 1000 frames and 500 m, or to the trajectory's end at the drawn speed; long
+    test worlds on one trajectory share no pose at any drawn speed."""
+    from gloam_jax.io import read_kitti_poses
+    from gloam_jax.metrics import path_lengths
+
+    poses, spans = {}, {}
+    for world in SPLITS["val_long"] + SPLITS["test_long"]:
+        if world.trajectory not in poses:
+            path = shared_path(f"kitti_gt_poses/{world.trajectory}.txt")
+            poses[world.trajectory] = read_kitti_poses(path)
+        P = poses[world.trajectory]
+        for offset in (0, 1, 2):  # three simulation draws, three speeds
+            spec = world_spec(world, seed_offset=offset, positions=P[:, :3, 3])
+            last = world.start + (spec.frames - 1) * spec.speed_scale  # a pose index
+            driven = path_lengths(P[world.start : int(last) + 1])[-1]
+            assert last <= len(P) - 2
+            ended = last > len(P) - 3 - spec.speed_scale  # stopped by the trajectory's end
+            assert ended or (spec.frames >= LONG_FRAMES and driven >= LONG_METRES), world
+        span = (world.start, world.start + spec.frames * 1.35)  # the fastest drawn speed
+        if world in SPLITS["test_long"]:
+            for other in spans.get(world.trajectory, []):
+                assert span[1] < other[0] or other[1] < span[0], world.sequence
+            spans.setdefault(world.trajectory, []).append(span)
+    # KITTI 04 and 03 are shorter than 500 m: driven to their ends
+    assert {w.trajectory for w in SPLITS["val_long"] + SPLITS["test_long"]} >= {"03", "04"}
+    with pytest.raises(ValueError, match="no frames fit"):
+        world_spec(SPLITS["test_long"][0], positions=np.zeros((2, 3)))
 
 
 def _write(path, data):

@@ -19,7 +19,7 @@ so none dominates a PCA by its units.
 Two of them describe the sensor as much as the scene: point density follows the beam count,
 and height above the ground how far up a sensor looks (a VLP-16 sees facades at 10 m, an
 HDL-64 rarely above 4 m). ``max_height`` and ``drop`` (feature names left out) make features
-that a sensor missing from training shifts less (docs/results.md, "Sensor-invariant features").
+that a sensor missing from training shifts less (experiments/invariant_features).
 """
 
 from __future__ import annotations

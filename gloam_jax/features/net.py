@@ -55,7 +55,7 @@ _LABEL_LUT[list(_MOVING)] = [_KITTI_IDS.index(v) for v in _MOVING.values()]
 NET_FORMAT = "gloam-jax-net"
 # The shipped networks by name (gloam_jax/data/): "default" reads intensity, "no-intensity"
 # is geometry only, "intensity-rank" reads each voxel's intensity rank in its scan
-# (docs/backbone.md, "Intensity").
+# (experiments/net_intensity).
 SHIPPED_NETS = {
     name: Path(__file__).resolve().parent.parent / "data" / file
     for name, file in (
@@ -86,7 +86,7 @@ class NetConfig:
     num_classes: int = len(CLASSES)
     # Feed each voxel's mean intensity. Off: geometry only (range, height, neighbourhoods), for
     # data whose intensity scale or model differs from the training scans' (other sensors, real
-    # scans, other simulators): docs/backbone.md, "Intensity".
+    # scans, other simulators): experiments/net_intensity.
     intensity: bool = True
     # Feed each voxel's mean intensity as its rank among the scan's voxels (0..1) instead:
     # blind to units, gain and offset (other monotone responses nearly: the ranks are of voxel

@@ -8,9 +8,9 @@ squared Mahalanobis distance ``d2`` to the training features' mean and covarianc
 points' own ``d2``) back along the ray to the mean, onto that boundary, before the MLPs see
 them (:func:`gloam_jax.learned.attributes`).
 
-Blending such points towards GICP's plane instead was measured worse (docs/results.md,
-"Novel features"): GICP's planes are thinner than the learned ones, so the blended points
-outweighed the rest of the scan.
+Blending such points towards GICP's plane instead was measured worse
+(experiments/novelty_clamp): GICP's planes are thinner than the learned ones, so the blended
+points outweighed the rest of the scan.
 """
 
 from __future__ import annotations

@@ -11,7 +11,10 @@ training (docs/worlds.md).
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING, NamedTuple
+
+import numpy as np
 
 if TYPE_CHECKING:
     from gloam_jax.simulate.spec import WorldSpec
@@ -67,6 +70,8 @@ EXTRA_TRAINING_WINDOWS: dict[str, tuple[str, SimWindow]] = {
 HELD_OUT_FAMILY = "yard"
 HELD_OUT_SENSOR = "os1-64"
 WORLD_FRAMES = 60  # 6 s a window: 25-130 m at 0.75-1.35x the recorded speed
+LONG_FRAMES = 1000  # the long splits: KITTI-length drives, scored on the devkit's 100-800 m
+LONG_METRES = 500.0  # ... and at least this far, where the trajectory goes on
 
 
 class World(NamedTuple):
@@ -78,6 +83,8 @@ class World(NamedTuple):
     family: str
     sensor: str
     motion_distortion: bool
+    frames: int = WORLD_FRAMES  # at least, as is min_metres; at most to the trajectory's end
+    min_metres: float = 0.0
 
 
 SPLITS: dict[str, tuple[World, ...]] = {
@@ -93,11 +100,12 @@ SPLITS: dict[str, tuple[World, ...]] = {
         World("109", "09", 0, "forest", "hdl64", True),
         World("110", "09", 800, "highway", "vlp16", True),
         # Added after 101-110: urban scenes seen by a VLP-16, which no training world had and
-        # whose val world (205) pulled against the training worlds' gradients (docs/results.md).
+        # whose val world (205) pulled against the training worlds' gradients
+        # (experiments/bounded_planes).
         World("111", "05", 2000, "urban", "vlp16", True),
         # Added after 111: a third sensor, the HDL-32E, whose ring spacing lies between the two
         # others', so that training spans sensor density instead of two points of it
-        # (docs/results.md, "A third training sensor"). Test still has none of it.
+        # (experiments/third_sensor). Test still has none of it.
         World("112", "09", 1200, "urban", "hdl32", True),
         World("113", "07", 950, "suburban", "hdl32", True),
         World("114", "03", 680, "forest", "hdl32", False),
@@ -121,7 +129,31 @@ SPLITS: dict[str, tuple[World, ...]] = {
         World("309", "08", 2000, "yard", "vlp16", False),
         World("310", "10", 100, "forest", "hdl64", True),
     ),
+    # KITTI-length drives (issue 41; experiments/long_drives/PLAN.md): scored on the devkit's
+    # own segments. Validation drives the training trajectories, most of them end to end, so
+    # it crosses stretches that a 60-frame training world also drives (with other scenery);
+    # test mirrors 301-310 (307 moves to 00, where 1000 frames fit).
+    "val_long": (
+        World("401", "01", 0, "highway", "hdl64", True, LONG_FRAMES, LONG_METRES),
+        World("402", "03", 0, "suburban", "vlp16", True, LONG_FRAMES, LONG_METRES),
+        World("403", "05", 300, "urban", "hdl64", True, LONG_FRAMES, LONG_METRES),
+        World("404", "07", 0, "suburban", "hdl64", False, LONG_FRAMES, LONG_METRES),
+        World("405", "09", 500, "forest", "hdl32", True, LONG_FRAMES, LONG_METRES),
+    ),
+    "test_long": (
+        World("501", "00", 0, "urban", "hdl64", True, LONG_FRAMES, LONG_METRES),
+        World("502", "00", 2000, "yard", "os1-64", True, LONG_FRAMES, LONG_METRES),
+        World("503", "02", 0, "suburban", "hdl64", False, LONG_FRAMES, LONG_METRES),
+        World("504", "02", 2500, "yard", "hdl64", True, LONG_FRAMES, LONG_METRES),
+        World("505", "04", 0, "highway", "os1-64", True, LONG_FRAMES, LONG_METRES),
+        World("506", "06", 0, "suburban", "vlp16", True, LONG_FRAMES, LONG_METRES),
+        World("507", "00", 3400, "forest", "os1-64", True, LONG_FRAMES, LONG_METRES),
+        World("508", "08", 100, "urban", "hdl64", True, LONG_FRAMES, LONG_METRES),
+        World("509", "08", 2000, "yard", "vlp16", False, LONG_FRAMES, LONG_METRES),
+        World("510", "10", 100, "forest", "hdl64", True, LONG_FRAMES, LONG_METRES),
+    ),
 }
+LONG_SPLITS = ("val_long", "test_long")
 
 
 def world_groups(split: str) -> dict[str, tuple[str, ...]]:
@@ -143,17 +175,38 @@ def world_groups(split: str) -> dict[str, tuple[str, ...]]:
     }
 
 
-def world_spec(world: World, frames: int = WORLD_FRAMES, seed_offset: int = 0) -> WorldSpec:
+def world_spec(
+    world: World,
+    frames: int | None = None,
+    seed_offset: int = 0,
+    positions: np.ndarray | None = None,
+) -> WorldSpec:
     """The :class:`~gloam_jax.simulate.spec.WorldSpec` of a protocol world, drawn from its id
-    (plus ``seed_offset``, for another draw of the same protocol)."""
+    (plus ``seed_offset``, for another draw of the same protocol). ``frames`` replaces the
+    world's own count. Given its trajectory's ``positions`` (M, 3), a world drives at least
+    ``min_metres`` too, and stops where the trajectory ends at the drawn speed."""
     from gloam_jax.simulate.spec import draw_world  # the simulator loads JAX: only when used
 
-    return draw_world(
+    spec = draw_world(
         int(world.sequence) + seed_offset,
         family=world.family,
         sensor=world.sensor,
         trajectory=world.trajectory,
         start=world.start,
-        frames=frames,
+        frames=frames or world.frames,
         motion_distortion=world.motion_distortion,
     )
+    if positions is None:
+        return spec
+    # 10 Hz frames at speed_scale advance speed_scale poses each (KITTI's poses are about
+    # 0.104 s apart, so this errs short); a pose of margin for the recording's uneven times.
+    if frames is None and world.min_metres > 0:
+        steps = np.linalg.norm(np.diff(positions[world.start :], axis=0), axis=1)
+        reach = int(np.searchsorted(np.cumsum(steps), world.min_metres)) + 1
+        spec = dataclasses.replace(
+            spec, frames=max(spec.frames, int(np.ceil(reach / spec.speed_scale)) + 1)
+        )
+    fits = int((len(positions) - 2 - world.start) / spec.speed_scale) + 1
+    if fits < 2:
+        raise ValueError(f"world {world.sequence}: no frames fit past pose {world.start}")
+    return dataclasses.replace(spec, frames=min(spec.frames, fits))
