@@ -47,7 +47,8 @@ class Prims(NamedTuple):
 
 class GroundGrid(NamedTuple):
     origin: jax.Array  # (2,)
-    fields: jax.Array  # (NX, NY, 2): base height, distance to the driven path
+    cells: jax.Array  # (NX - 1, NY - 1, 8): per cell, (base height, path distance) at its
+    # corners (i, j), (i, j + 1), (i + 1, j), (i + 1, j + 1): one gather per lookup, not four
     params: jax.Array  # (3,) road half width, sidewalk width, curb height
     labels: jax.Array  # (3,) int32 class of the road, the band beside it, the ground beyond
     z_range: jax.Array  # (2,) lowest and highest ground in the crop
@@ -179,14 +180,15 @@ def ellipsoid_hits(o, d, tr, ray_id, salt, p: Prims):
 def _ground_fields(xy, g: GroundGrid):
     """Bilinear (base height, path distance) at xy: (..., 2) -> (..., 2)."""
     f = (xy - g.origin) / GRID_RES
-    f = jnp.clip(f, 0.0, jnp.array(g.fields.shape[:2], f.dtype) - 1.001)
+    # float32(NX) - 1.001, as with the grid of points: the same clamp at the crop's edge.
+    f = jnp.clip(f, 0.0, (jnp.array(g.cells.shape[:2], f.dtype) + 1) - 1.001)
     i0 = jnp.floor(f).astype(jnp.int32)
     w = (f - i0)[..., None, :]
-    i, j = i0[..., 0], i0[..., 1]
-    grid = g.fields
-    return (1 - w[..., 0]) * ((1 - w[..., 1]) * grid[i, j] + w[..., 1] * grid[i, j + 1]) + w[
-        ..., 0
-    ] * ((1 - w[..., 1]) * grid[i + 1, j] + w[..., 1] * grid[i + 1, j + 1])
+    c = g.cells[i0[..., 0], i0[..., 1]]
+    a00, a01, a10, a11 = c[..., 0:2], c[..., 2:4], c[..., 4:6], c[..., 6:8]
+    return (1 - w[..., 0]) * ((1 - w[..., 1]) * a00 + w[..., 1] * a01) + w[..., 0] * (
+        (1 - w[..., 1]) * a10 + w[..., 1] * a11
+    )
 
 
 def ground_height(xy, g: GroundGrid):
@@ -400,9 +402,12 @@ def ground_window(scene: Scene, origin: np.ndarray, half_extent: float) -> Groun
     z_range = [crop_b.min() - origin[2] - 0.05, crop_b.max() - origin[2] + g.curb_height + 0.05]
     base[: crop_b.shape[0], : crop_b.shape[1]] = crop_b - origin[2]
     dist[: crop_d.shape[0], : crop_d.shape[1]] = crop_d
+    fields = np.stack([base, dist], axis=-1)
     return GroundGrid(
         origin=(g.origin + start * GRID_RES - origin[:2]).astype(np.float32),
-        fields=np.stack([base, dist], axis=-1),
+        cells=np.concatenate(
+            [fields[:-1, :-1], fields[:-1, 1:], fields[1:, :-1], fields[1:, 1:]], axis=-1
+        ),
         params=np.array([g.road_half_width, g.sidewalk_width, g.curb_height], np.float32),
         z_range=np.array(z_range, np.float32),
         labels=np.array(g.labels, np.int32),
