@@ -211,3 +211,20 @@ def test_simulate_refuses_what_it_did_not_make_and_bad_sensor_settings(tmp_path)
     # A refused style leaves nothing behind that would lock the folder for a valid run.
     assert not (tmp_path / "fresh" / "sequences" / "00" / "simulation.json").exists()
     assert simulate(tmp_path / "fresh", **kw).is_dir()
+
+
+def test_nearest_pair_per_sector_breaks_ties_like_argmin():
+    from gloam_jax.simulate.raycast import _nearest
+
+    rng = np.random.default_rng(0)
+    sector = np.array([0, 0, 0, 2, 2, 3, 3, 3], np.int32)  # sector 1 has no pairs
+    t = rng.choice([1.0, 2.0, np.inf], size=(8, 50)).astype(np.float32)  # many ties
+    t_min, k = (np.asarray(a) for a in _nearest(t, sector, 4))
+    for s in range(4):
+        rows = np.flatnonzero(sector == s)
+        if len(rows) == 0:
+            assert np.all(np.isinf(t_min[s]))
+            continue
+        np.testing.assert_array_equal(t_min[s], t[rows].min(axis=0))
+        hit = np.isfinite(t_min[s])
+        np.testing.assert_array_equal(k[s][hit], rows[np.argmin(t[rows], axis=0)][hit])

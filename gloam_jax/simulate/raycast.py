@@ -1,9 +1,10 @@
 """Jitted ray casting of one LiDAR sweep against a :class:`~gloam_jax.simulate.world.Scene`.
 
 Rays are grouped in azimuth sectors; each sector is tested only against the primitives that
-can lie in it (chosen on the host, padded to a power-of-two count so shapes, and compiled
-code, repeat from frame to frame). Coordinates are relative to the frame's sensor position
-(float32 stays precise far from the world origin).
+can lie in it. The host lists those (sector, primitive) pairs, padded to a power-of-two count
+so shapes, and compiled code, repeat from frame to frame; the work is then proportional to the
+pairs, not to the busiest sector times the number of sectors. Coordinates are relative to the
+frame's sensor position (float32 stays precise far from the world origin).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ _FAR = 1e9
 
 
 class Prims(NamedTuple):
-    """Device-side primitive arrays, leading axes (..., P)."""
+    """Device-side primitive arrays, one entry per (sector, primitive) pair: leading axes (Q,)."""
 
     center: jax.Array
     size: jax.Array
@@ -43,11 +44,13 @@ class Prims(NamedTuple):
     pattern: jax.Array
     uid: jax.Array
     valid: jax.Array
+    sector: jax.Array  # int32 sector whose rays meet this primitive; pairs sorted by it
 
 
 class GroundGrid(NamedTuple):
     origin: jax.Array  # (2,)
-    fields: jax.Array  # (NX, NY, 2): base height, distance to the driven path
+    cells: jax.Array  # (NX - 1, NY - 1, 8): per cell, (base height, path distance) at its
+    # corners (i, j), (i, j + 1), (i + 1, j), (i + 1, j + 1): one gather per lookup, not four
     params: jax.Array  # (3,) road half width, sidewalk width, curb height
     labels: jax.Array  # (3,) int32 class of the road, the band beside it, the ground beyond
     z_range: jax.Array  # (2,) lowest and highest ground in the crop
@@ -179,14 +182,15 @@ def ellipsoid_hits(o, d, tr, ray_id, salt, p: Prims):
 def _ground_fields(xy, g: GroundGrid):
     """Bilinear (base height, path distance) at xy: (..., 2) -> (..., 2)."""
     f = (xy - g.origin) / GRID_RES
-    f = jnp.clip(f, 0.0, jnp.array(g.fields.shape[:2], f.dtype) - 1.001)
+    # float32(NX) - 1.001, as with the grid of points: the same clamp at the crop's edge.
+    f = jnp.clip(f, 0.0, (jnp.array(g.cells.shape[:2], f.dtype) + 1) - 1.001)
     i0 = jnp.floor(f).astype(jnp.int32)
     w = (f - i0)[..., None, :]
-    i, j = i0[..., 0], i0[..., 1]
-    grid = g.fields
-    return (1 - w[..., 0]) * ((1 - w[..., 1]) * grid[i, j] + w[..., 1] * grid[i, j + 1]) + w[
-        ..., 0
-    ] * ((1 - w[..., 1]) * grid[i + 1, j] + w[..., 1] * grid[i + 1, j + 1])
+    c = g.cells[i0[..., 0], i0[..., 1]]
+    a00, a01, a10, a11 = c[..., 0:2], c[..., 2:4], c[..., 4:6], c[..., 6:8]
+    return (1 - w[..., 0]) * ((1 - w[..., 1]) * a00 + w[..., 1] * a01) + w[..., 0] * (
+        (1 - w[..., 1]) * a10 + w[..., 1] * a11
+    )
 
 
 def ground_height(xy, g: GroundGrid):
@@ -258,23 +262,43 @@ def _ground_normal_and_label(p, g: GroundGrid):
 _HIT_FNS = (box_hits, cylinder_hits, ellipsoid_hits)
 
 
-def _cast_sector(o, d, tr, ray_id, salt, prims: tuple[Prims, Prims, Prims]):
-    """Nearest primitive hit for one sector's rays: (t, label, reflectivity, normal)."""
-    best_t = jnp.full(o.shape[0], jnp.inf, o.dtype)
-    best = (best_t, jnp.zeros(o.shape[0], jnp.int32), jnp.zeros_like(best_t), jnp.zeros_like(o))
+def _nearest(t, sector, num_sectors: int):
+    """Per sector and ray, the nearest pair and its distance: (Q, Rs) -> (S, Rs) twice.
+
+    Ties go to the lowest pair, as argmin over a sector's primitives in index order would.
+    """
+    t_min = jax.ops.segment_min(t, sector, num_segments=num_sectors, indices_are_sorted=True)
+    pair = jnp.arange(t.shape[0], dtype=jnp.int32)[:, None]
+    cand = jnp.where(t == t_min[sector], pair, t.shape[0] - 1)
+    k = jax.ops.segment_min(cand, sector, num_segments=num_sectors, indices_are_sorted=True)
+    return t_min, jnp.minimum(k, t.shape[0] - 1)  # a sector without pairs: any index, t is inf
+
+
+def _cast_pairs(o, d, tr, ray_id, salt, prims: tuple[Prims, Prims, Prims]):
+    """Nearest primitive hit per ray, (S, Rs, ...) rays: (t, label, reflectivity, normal)."""
+    S = o.shape[0]
+    best = (
+        jnp.full(o.shape[:2], jnp.inf, o.dtype),
+        jnp.zeros(o.shape[:2], jnp.int32),
+        jnp.zeros(o.shape[:2], o.dtype),
+        jnp.zeros_like(o),
+    )
     for fn, p in zip(_HIT_FNS, prims, strict=True):
-        t, _ = fn(o, d, tr, ray_id, salt, p)
-        k = jnp.argmin(t, axis=1)
-        t_k = jnp.take_along_axis(t, k[:, None], 1)[:, 0]
+
+        def pair_t(s, p_q, fn=fn):
+            one = jax.tree.map(lambda a: a[None], p_q)
+            return fn(o[s], d[s], tr[s], ray_id[s], salt, one)[0][:, 0]
+
+        t_k, k = _nearest(jax.vmap(pair_t)(p.sector, p), p.sector, S)
         # Normal of the winner only: re-run the test against that one primitive.
-        winner = jax.tree.map(lambda a, k=k: a[k][:, None], p)
-        _, n = fn(o, d, tr, ray_id, salt, winner)
+        winner = jax.tree.map(lambda a, k=k: a[k][:, :, None], p)
+        n = jax.vmap(lambda *a, fn=fn: fn(*a[:4], salt, a[4])[1])(o, d, tr, ray_id, winner)
         closer = t_k < best[0]
         best = (
             jnp.where(closer, t_k, best[0]),
             jnp.where(closer, p.label[k], best[1]),
             jnp.where(closer, p.reflectivity[k], best[2]),
-            jnp.where(closer[:, None], n[:, 0], best[3]),
+            jnp.where(closer[..., None], n[:, :, 0], best[3]),
         )
     return best
 
@@ -286,12 +310,10 @@ def cast_sweep(
     """Cast a sweep grouped in S sectors of Rs rays each.
 
     origins, dirs: (S, Rs, 3); times: (S, Rs) s from mid-sweep; ray_ids: (S, Rs) uint32;
-    prims: three :class:`Prims` (boxes, cylinders, ellipsoids) with leading axes (S, P_kind).
-    Returns :class:`Hits` with (S, Rs) fields.
+    prims: three :class:`Prims` (boxes, cylinders, ellipsoids), (sector, primitive) pairs
+    with leading axis (Q_kind,). Returns :class:`Hits` with (S, Rs) fields.
     """
-    t, label, refl, normal = jax.vmap(_cast_sector, in_axes=(0, 0, 0, 0, None, 0))(
-        origins, dirs, times, ray_ids, salt, prims
-    )
+    t, label, refl, normal = _cast_pairs(origins, dirs, times, ray_ids, salt, prims)
     flat = origins.reshape(-1, 3), dirs.reshape(-1, 3)
     t_g = ground_hits(*flat, ground, t_max).reshape(t.shape)
     p_g = origins + t_g[..., None] * dirs
@@ -306,7 +328,9 @@ def cast_sweep(
 
 
 def _pad_count(n: int) -> int:
-    return max(8, 1 << int(np.ceil(np.log2(max(n, 1)))))
+    """n rounded up to a quarter of its power of two: few sizes (compilations), little waste."""
+    step = max(2, (1 << (max(n, 1).bit_length() - 1)) >> 2)
+    return max(8, -(-n // step) * step)
 
 
 def sector_primitives(
@@ -318,12 +342,13 @@ def sector_primitives(
     max_range: float,
     min_pad: int = 8,
 ) -> Prims:
-    """Primitives that may be seen in each azimuth sector, padded: leading axes (S, P).
+    """The (sector, primitive) pairs where a primitive may be seen in an azimuth sector,
+    sorted by sector, then primitive; padded with invalid pairs: leading axis (Q,).
 
     origin: (3,) sensor position at mid-sweep, time t_frame: coordinates and times become
     relative to these. sector_origins: (S, 2) world xy of the sensor during each sector;
     sector_azimuths: (S, 2) world azimuths (radians) of each sector's first and last ray.
-    min_pad: pad to at least this many per sector (keep it sticky to avoid recompiling).
+    min_pad: pad to at least this many pairs (keep it sticky to avoid recompiling).
     """
     S = len(sector_origins)
     centre_now = prims.center + prims.velocity * t_frame
@@ -341,16 +366,13 @@ def sector_primitives(
     span = np.abs((a1 - a0 + np.pi) % (2 * np.pi) - np.pi)
     centre = a0 + 0.5 * ((a1 - a0 + np.pi) % (2 * np.pi) - np.pi)
     diff = np.abs((az - centre + np.pi) % (2 * np.pi) - np.pi)
-    member = diff <= 0.5 * span + half  # (S, P_near)
-    P = max(min_pad, _pad_count(int(member.sum(axis=1).max()) if len(near_idx) else 0))
-    idx = np.zeros((S, P), dtype=np.int64)
-    valid = np.zeros((S, P), dtype=bool)
-    for s in range(S):
-        sel = near_idx[member[s]]
-        idx[s, : len(sel)] = sel
-        valid[s, : len(sel)] = True
+    sector, member = np.nonzero(diff <= 0.5 * span + half)  # row-major: sorted by sector
+    Q = max(min_pad, _pad_count(len(sector)))
     if len(prims) == 0:
-        return _empty_prims(S, P)
+        return _empty_prims(S, Q)
+    idx = np.zeros(Q, dtype=np.int64)
+    idx[: len(sector)] = near_idx[member]
+    valid = np.arange(Q) < len(sector)
     sub = prims.take(idx)
     return Prims(
         center=(sub.center + sub.velocity * t_frame - origin).astype(np.float32),
@@ -365,12 +387,14 @@ def sector_primitives(
         pattern=sub.pattern.astype(np.float32),
         uid=sub.uid.astype(np.uint32),
         valid=valid,
+        # Padding joins the last sector, keeping the pairs sorted; being invalid, it never hits.
+        sector=np.concatenate([sector, np.full(Q - len(sector), S - 1)]).astype(np.int32),
     )
 
 
-def _empty_prims(S: int, P: int) -> Prims:
-    f = np.zeros((S, P), np.float32)
-    f3 = np.zeros((S, P, 3), np.float32)
+def _empty_prims(S: int, Q: int) -> Prims:
+    f = np.zeros(Q, np.float32)
+    f3 = np.zeros((Q, 3), np.float32)
     return Prims(
         f3,
         f3 + 1e-3,
@@ -381,9 +405,10 @@ def _empty_prims(S: int, P: int) -> Prims:
         f.astype(np.int32),
         f,
         f,
-        np.zeros((S, P, 4), np.float32),
+        np.zeros((Q, 4), np.float32),
         f.astype(np.uint32),
-        np.zeros((S, P), bool),
+        np.zeros(Q, bool),
+        np.full(Q, S - 1, np.int32),
     )
 
 
@@ -400,9 +425,12 @@ def ground_window(scene: Scene, origin: np.ndarray, half_extent: float) -> Groun
     z_range = [crop_b.min() - origin[2] - 0.05, crop_b.max() - origin[2] + g.curb_height + 0.05]
     base[: crop_b.shape[0], : crop_b.shape[1]] = crop_b - origin[2]
     dist[: crop_d.shape[0], : crop_d.shape[1]] = crop_d
+    fields = np.stack([base, dist], axis=-1)
     return GroundGrid(
         origin=(g.origin + start * GRID_RES - origin[:2]).astype(np.float32),
-        fields=np.stack([base, dist], axis=-1),
+        cells=np.concatenate(
+            [fields[:-1, :-1], fields[:-1, 1:], fields[1:, :-1], fields[1:, 1:]], axis=-1
+        ),
         params=np.array([g.road_half_width, g.sidewalk_width, g.curb_height], np.float32),
         z_range=np.array(z_range, np.float32),
         labels=np.array(g.labels, np.int32),

@@ -123,7 +123,7 @@ class SweepSimulator:
             t_frame, T_frame, T_cols, _ = self._sweep(int(i))
             dirs = np.einsum("cij,cbj->cbi", T_cols[:, :3, :3], self.dirs_true)
             prims = self._sector_prims(t_frame, T_frame, T_cols, dirs, self._pads)
-            self._pads = [p.valid.shape[1] for p in prims]
+            self._pads = [p.valid.shape[0] for p in prims]
 
     def frame(self, i: int) -> FrameScan:
         """Simulate frame ``i`` of the trajectory's window."""
@@ -147,7 +147,7 @@ class SweepSimulator:
             np.uint32
         )
         prims = self._sector_prims(t_frame, T_frame, T_cols, dirs, self._pads)
-        self._pads = [p.valid.shape[1] for p in prims]  # only grows: few recompilations
+        self._pads = [p.valid.shape[0] for p in prims]  # only grows: few recompilations
         # A fixed crop size (static shape, one compilation) that covers a sweep at up to 50 m/s.
         ground = raycast.ground_window(self.scene, origin, sensor.max_range + 7.0)
         salt = np.uint32(hash_seed(self.seed, i) & 0xFFFFFFFF)
