@@ -61,8 +61,10 @@ def test_the_mlps_see_familiar_features_as_they_are_and_novel_ones_clamped():
     covs, feats = attributes(values, vectors, f, parts, "plane")
     gated_covs, gated_feats = attributes(values, vectors, f, parts._replace(novelty=nov), "plane")
     at_edge = attributes(values, vectors, nov.clamp(f), parts, "plane")
-    np.testing.assert_allclose(gated_covs[0], covs[0], rtol=1e-6)
-    np.testing.assert_allclose(gated_feats[0], feats[0], rtol=1e-6)
+    # the clamp leaves a familiar point's features as they are, but the gated attributes are
+    # another compiled program: float32 sums may round differently (a few ulps; 1e-5 is ~80)
+    np.testing.assert_allclose(gated_covs[0], covs[0], rtol=1e-5)
+    np.testing.assert_allclose(gated_feats[0], feats[0], rtol=1e-5)
     np.testing.assert_allclose(gated_covs[1], at_edge[0][1], rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(gated_feats[1], at_edge[1][1], rtol=1e-5)
     assert np.abs(np.asarray(feats[1]) - np.asarray(gated_feats[1])).max() > 0.1
