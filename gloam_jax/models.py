@@ -38,6 +38,7 @@ from gloam_jax.learned import (
     check_method,
     plane_output,
 )
+from gloam_jax.sensor import SensorSignature
 
 MODEL_FORMAT = "gloam-jax-model"
 MODEL_VERSION = 1
@@ -59,6 +60,8 @@ class GLOAMModel:
     max_thickness: float | None = None
     # The training features' region, which the MLPs' inputs are clamped to (None: unclamped).
     novelty: FeatureNovelty | None = None
+    # The sensors of the training scans (gloam_jax.sensor); None: not recorded (older files).
+    sensors: tuple[SensorSignature, ...] | None = None
 
     def __post_init__(self) -> None:
         problem = _thickness_problem(self.max_thickness, self.eps)
@@ -122,8 +125,9 @@ def init_model(
     backbone: str = "geometric",
     backbone_options: dict[str, Any] | None = None,
     init: str = "random",
+    sensors: tuple[SensorSignature, ...] | None = None,
 ) -> GLOAMModel:
-    """A model with initialised MLPs around a fitted PCA.
+    """A model with initialised MLPs around a fitted PCA (on scans of ``sensors``).
 
     ``init="random"``: both MLPs as :meth:`MLP.init`. ``init="gicp"``: a start at plain GICP,
     for training. The eigenvalue MLP is constant at :func:`~gloam_jax.learned.plane_output`,
@@ -156,6 +160,7 @@ def init_model(
         backbone_name=backbone,
         backbone_options=dict(backbone_options or {}),
         provenance={"init": init},
+        sensors=sensors,
     )
 
 
@@ -214,6 +219,7 @@ def save_model(path: str | os.PathLike[str], model: GLOAMModel) -> None:
         "provenance": model.provenance,
         # Written only when set, so that a file without the bound reads as it always did.
         **({} if model.max_thickness is None else {"max_thickness": model.max_thickness}),
+        **({} if model.sensors is None else {"sensors": [s.to_dict() for s in model.sensors]}),
     }
     # A 0-d unicode array, not a pickled object: the file loads with allow_pickle=False.
     write_npz(path, metadata=np.array(json.dumps(metadata)), **_arrays(model))
@@ -315,6 +321,7 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
     problem = _thickness_problem(max_thickness, eps)
     if problem:
         raise InputError(p, problem)
+    sensors = _sensors(p, metadata.get("sensors"))
 
     def mlp(cls: type[MLP], prefix: str) -> MLP:
         return cls(*(jnp.asarray(arrays[f"{prefix}_{k}"]) for k in MLP._fields))
@@ -336,4 +343,18 @@ def load_model(path: str | os.PathLike[str]) -> GLOAMModel:
             if novelty
             else None
         ),  # fmt: skip
+        sensors=sensors,
     )
+
+
+def _sensors(path: Path, record: object) -> tuple[SensorSignature, ...] | None:
+    """The metadata's ``sensors`` list read (None where the file has none); InputError
+    naming ``path`` when it is malformed."""
+    if record is None:
+        return None
+    if not isinstance(record, list):
+        raise InputError(path, f"metadata 'sensors' must be a list, not {record!r}")
+    try:
+        return tuple(SensorSignature.from_dict(s) for s in record)
+    except InputError as err:
+        raise InputError(path, f"metadata 'sensors': {err.problem}") from None

@@ -38,6 +38,11 @@ class OdometryConfig:
     mode: Literal["frame_to_model", "frame_to_frame"] = "frame_to_model"
     method: Literal["gicp", "gicp_da", "gicp_ce", "gloam"] = "gicp"  # see learned.METHODS
     model: str | None = None  # model file (learned parts) for the methods that need one
+    # What runs instead of the learned parts where no shipped model (model: default) was
+    # trained on the scans' sensor, or the model's features lie outside its training region:
+    # plain GICP, GICP with the model's learned association, or the model all the same
+    # (off). A model file named in model: always runs, with a warning (gloam_jax/guard.py).
+    guard: Literal["gicp", "gicp_da", "off"] = "gicp"
     keyframe_distance: float = 2.0  # m between keyframes
     keyframe_angle_deg: float = 15.0
     max_keyframes: int = 10  # local map size

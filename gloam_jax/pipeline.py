@@ -11,7 +11,9 @@ folder's name)::
     NN_gt_kitti.txt           ground truth of the frames run, when it exists (evo_ape kitti)
     NN_gt_tum.txt             the same with the frame times (evo_ape tum)
     metrics.json              KITTI RTE and ATE (when ground truth exists), timing, frame
-                              flags, the deskew policy and time convention, the defaults taken
+                              flags, the deskew policy and time convention, the defaults taken,
+                              the model run and why (model_choice: the scans' sensor, the
+                              guard's decision)
     trajectory.png            the trajectory (against the ground truth, with the error per
                               segment length when the devkit's segments fit)
     config.yaml               the settings used
@@ -33,8 +35,11 @@ from gloam_jax.config import dump_config
 from gloam_jax.datasets import Dataset, open_dataset
 from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone, get_backbone, intensity_warning
+from gloam_jax.guard import Choice, choose
+from gloam_jax.models import GLOAMModel
 from gloam_jax.odometry import Odometry, OdometryConfig
 from gloam_jax.preprocess import ONE_INSTANT, detect_time_convention, resolve_deskew
+from gloam_jax.sensor import SENSOR_SCANS
 
 
 def select_frames(n: int, start: int = 0, frames: int | None = None, stride: int = 1) -> range:
@@ -104,7 +109,8 @@ def run_dataset(
     metrics dict.
 
     Every scan of ``frames`` is checked (sizes, headers) before the first is registered.
-    ``auto`` deskewing is resolved by the data (:func:`plan_deskew`). Learned methods get
+    ``auto`` deskewing is resolved by the data (:func:`plan_deskew`), the model (or the
+    guard's plain GICP) by the first scans' sensor (:func:`choose_model`). Learned methods get
     per-point features from the model's backbone, or from one file per scan in
     ``features_dir`` (the ``precomputed`` backbone). ``progress(k, ms)`` after the k-th frame.
     The time per frame counts registration only; feature extraction is timed separately
@@ -117,10 +123,12 @@ def run_dataset(
         )
     dataset.check(frames)
     resolved, deskew = plan_deskew(dataset, config, frames[0])
-    odometry = Odometry(resolved)
+    choice = choose_model(dataset, resolved, frames, features_dir)
+    odometry = Odometry(choice.config, choice.model)
     backbone = _backbone(odometry, features_dir)
     times = dataset.times
-    frame_ms, feature_ms, warnings = [], [], []
+    frame_ms, feature_ms = [], []
+    warnings = [] if choice.warning is None else [choice.warning]
     for k, i in enumerate(frames):
         scan, point_times = dataset.frame(i)
         if k == 0 and backbone is not None:
@@ -145,10 +153,27 @@ def run_dataset(
             progress(k, frame_ms[-1])
     extra = {"deskew": deskew, "defaults": list(dataset.defaults), "dataset": dataset.kind,
              "frames": {"start": frames.start, "stride": frames.step, "count": n},
-             "warnings": warnings}  # fmt: skip
+             "model_choice": choice.record, "warnings": warnings}  # fmt: skip
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
     return write_run(dataset, odometry, config, out_dir, frames, frame_ms, extra)
+
+
+def choose_model(
+    dataset: Dataset, config: OdometryConfig, frames: range, features_dir: str | Path | None
+) -> Choice:
+    """The model for a run (:func:`gloam_jax.guard.choose`), judged on its first scans."""
+    first = frames[:SENSOR_SCANS]
+    scans = [dataset.frame(i)[0] for i in first]
+
+    def features(model: GLOAMModel, k: int) -> np.ndarray:
+        if features_dir is not None:
+            backbone = get_backbone("precomputed", folder=features_dir)
+        else:
+            backbone = model.backbone()
+        return backbone(scans[k], path=dataset.scan_path(first[k]), frame=first[k])
+
+    return choose(config, scans, features)
 
 
 def _backbone(odometry: Odometry, features_dir: str | Path | None) -> Backbone | None:

@@ -50,6 +50,17 @@ Per-point times may be seconds from the sweep's start, from mid-sweep or before 
 [0, 1] fraction, or absolute seconds / nanoseconds (also ms, us): like KISS-ICP, they are
 mapped by their span onto one sweep of `preprocess.sweep_duration`, and the convention found
 is recorded (`deskew.time_convention`). A span that fits none is an error.
+
+**Model and guard** (`model`, `guard`): every model file records the sensors it was trained
+for (rings, vertical field of view, points per scan; `gloam model-info` lists them: the shipped
+models know the HDL-64E and the VLP-16). `model: default` measures the run's first three scans
+and runs the first shipped model trained for their sensor; where none is (an OS1-64, an
+HDL-32E), or more than 10 % of their points lie outside the model's feature region, `guard`
+runs instead: plain GICP (`gicp`), the model's learned association alone (`gicp_da`), or the
+model all the same (`off`). A model named otherwise (`--weights FILE`, `model: net`, a path)
+runs whatever the sensor, with a warning; an older file without the record too. The run
+summary and `metrics.json` (`model_choice`: model, method, sensor, decision, reason) say which
+model ran and why ([experiments/sensor_guard](../experiments/sensor_guard/README.md)).
 """
 
 SECTIONS = (

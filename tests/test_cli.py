@@ -339,5 +339,7 @@ def test_model_info_says_how_a_model_was_made(tmp_path):
     # The shipped model was chosen on validation and scored on test.
     shipped = runner.invoke(app, ["model-info"], env={"COLUMNS": "120"})
     assert "chosen on validation" in shipped.output and "301-310 (10)" in shipped.output
+    assert "trained for sensor hdl64: 64 rings" in shipped.output
+    assert "sensors: not recorded" in untrained.output  # a file written without the record
     missing = runner.invoke(app, ["model-info", str(tmp_path / "none.npz")])
     assert missing.exit_code == 2 and "none.npz: model file not found" in missing.output

@@ -15,6 +15,7 @@ from gloam_jax.features import (
     intensity_warning,
 )
 from gloam_jax.features import geometric as geo_features
+from gloam_jax.models import shipped_model_path
 
 
 def synthetic_scan(seed: int = 0) -> tuple[np.ndarray, dict[str, np.ndarray]]:
@@ -258,7 +259,10 @@ def test_a_scan_in_other_intensity_units_is_flagged(scan_features, tmp_path):
     folder.mkdir()
     for i in range(2):  # the shipped model (geometric backbone) on scans in 0-255 units
         np.save(folder / f"{i:06d}.npy", counts - np.float32([0.2 * i, 0, 0, 0]))
-    result = CliRunner().invoke(app, ["run", str(folder), "--method", "gloam", "--out",
-                                      str(tmp_path / "res"), "--no-compilation-cache"])  # fmt: skip
+    # Named by its file, so that it runs on this small scan, which is no sensor it knows.
+    result = CliRunner().invoke(app, ["run", str(folder), "--method", "gloam", "--weights",
+                                      str(shipped_model_path()), "--out", str(tmp_path / "res"),
+                                      "--no-compilation-cache"])  # fmt: skip
     assert result.exit_code == 0, result.output
     assert result.output.count("warning: the scans' mean intensity") == 1
+    assert result.output.count("warning: model") == 1 and "forced" in result.output

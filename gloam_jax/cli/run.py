@@ -104,6 +104,15 @@ def run_odometry(
     with frame_progress(f"{config.method} {dataset.name}", len(chosen)) as step:
         result = run_dataset(dataset, config, run_dir, chosen, progress=step, features_dir=features)
     console.print(f"  {result['deskew']['reason']}")
+    choice = result["model_choice"]
+    if "decision" in choice:  # a learned method: which model ran, on which sensor, and why
+        from gloam_jax.sensor import SensorSignature
+
+        found = choice["sensor"]
+        described = "not measured" if found is None else SensorSignature.from_dict(found).describe()
+        console.print(f"  model: {choice['model'] or 'none'}, method {choice['method']}")
+        console.print(f"  sensor of the scans: {described}")
+        console.print(f"  {choice['decision']}: {choice['reason']}")
     for warning in result.get("warnings", []):
         console.print(f"  warning: {warning}")
     if "per_length" in result:

@@ -109,8 +109,10 @@ def model_info(
     m = load_model(model)
     prov = m.provenance
     if json_out:
+        sensors = None if m.sensors is None else [s.to_dict() for s in m.sensors]
         info = {"backbone": m.backbone_name, "backbone_options": m.backbone_options,
-                "eps": m.eps, "max_thickness": m.max_thickness, "provenance": prov}  # fmt: skip
+                "eps": m.eps, "max_thickness": m.max_thickness, "sensors": sensors,
+                "provenance": prov}  # fmt: skip
         console.print_json(json.dumps(info, default=str))
         return
     trained = prov.get("config", {})
@@ -119,6 +121,10 @@ def model_info(
         f"{100 * float(sum(m.pca.explained_variance_ratio)):.1f} % of the variance, eps {m.eps:g}"
         + ("" if m.max_thickness is None else f", max_thickness {m.max_thickness:g}")
     )
+    if m.sensors is None:
+        say("sensors: not recorded (an older file: gloam run runs it when named, with a warning)")
+    for s in m.sensors or ():
+        say(f"trained for sensor {s.describe()}")
     if m.novelty is not None:
         fit = prov.get("novelty", {})
         say(

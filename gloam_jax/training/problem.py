@@ -31,6 +31,9 @@ from gloam_jax.features import Backbone, NetBackbone, fit_pca, get_backbone
 from gloam_jax.features.net import save_net, with_decode
 from gloam_jax.learned import Learned
 from gloam_jax.models import GLOAMModel, init_model, load_model, save_model, with_mlps
+from gloam_jax.sensor import SENSOR_SCANS
+from gloam_jax.sensor import measure as measure_sensor
+from gloam_jax.sensor import merge as merge_sensors
 from gloam_jax.training.batch import BatchData, Evaluator
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.data import load_windows, open_sequences
@@ -54,21 +57,29 @@ def fit_initial_model(
 ) -> GLOAMModel:
     """Fit the frozen PCA on every ``every``-th scan of the training sequences (of ``root``, or
     of each of several roots) and wrap it with initialised MLPs
-    (:func:`gloam_jax.models.init_model`)."""
-    rows = []
+    (:func:`gloam_jax.models.init_model`); the sensors are measured on the same scans, a
+    sequence at a time (:func:`gloam_jax.sensor.merge`)."""
+    rows, signatures = [], []
     for seq in open_sequences(root, sequences):
         name = seq.sequence
         frames = range(0, len(seq), every)
+        scans = []
         for k, i in enumerate(frames):
-            rows.append(extractor(seq.scan(i), path=seq.scan_path(i), frame=i))
+            scans.append(seq.scan(i))
+            rows.append(extractor(scans[-1], path=seq.scan_path(i), frame=i))
             if progress is not None:
                 progress(f"PCA features {name}", k + 1, len(frames))
+        try:
+            signatures.append(measure_sensor(scans[:SENSOR_SCANS]))
+        except InputError as err:
+            raise InputError(seq.sequence_dir, err.problem) from None
     return init_model(
         jax.random.PRNGKey(seed),
         fit_pca(rows, seed=seed),
         backbone=extractor.name,
         backbone_options=extractor.options() if keep_backbone_options else {},
         init=init,
+        sensors=tuple(merge_sensors(signatures)),
     )
 
 
