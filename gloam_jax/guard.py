@@ -55,11 +55,9 @@ def guarded(config: OdometryConfig, variant: str) -> OdometryConfig:
     return dataclasses.replace(config, method="gicp_da", gicp=gicp)
 
 
-def outside_share(model: GLOAMModel, raw: Sequence[np.ndarray]) -> float | None:
+def outside_share(model: GLOAMModel, raw: Sequence[np.ndarray]) -> float:
     """The share of points whose PCA features (from backbone features (N_k, D) of a few
-    scans) lie outside ``model``'s feature region; None where it has none."""
-    if model.novelty is None:
-        return None
+    scans) lie outside ``model``'s feature region (the model must have one)."""
     f = jnp.asarray(model.pca_features(np.concatenate(raw)), jnp.float32)
     d2 = np.asarray(model.novelty.squared_distance(f))
     return float(np.mean(d2 > float(model.novelty.radius2)))
@@ -91,9 +89,12 @@ def choose(config: OdometryConfig, scans: Sequence[np.ndarray], features: Featur
                 "reason": reason}  # fmt: skip
 
     def novel(model: GLOAMModel) -> str | None:
+        base["outside_share"] = None
+        if model.novelty is None:  # no region to be outside of: the scans' features unneeded
+            return None
         share = outside_share(model, [features(model, k) for k in range(len(scans))])
         base["outside_share"] = share
-        if share is None or share <= NOVELTY_SHARE:
+        if share <= NOVELTY_SHARE:
             return None
         return (f"{100 * share:.0f} % of the first scans' points lie outside the model's "
                 f"training features (more than {100 * NOVELTY_SHARE:.0f} %)")  # fmt: skip

@@ -63,14 +63,16 @@ def fit_initial_model(
     for seq in open_sequences(root, sequences):
         name = seq.sequence
         frames = range(0, len(seq), every)
-        scans = []
+        scans = []  # the sequence's first few, for its sensor's signature
         for k, i in enumerate(frames):
-            scans.append(seq.scan(i))
-            rows.append(extractor(scans[-1], path=seq.scan_path(i), frame=i))
+            scan = seq.scan(i)
+            rows.append(extractor(scan, path=seq.scan_path(i), frame=i))
+            if k < SENSOR_SCANS:
+                scans.append(scan)
             if progress is not None:
                 progress(f"PCA features {name}", k + 1, len(frames))
         try:
-            signatures.append(measure_sensor(scans[:SENSOR_SCANS]))
+            signatures.append(measure_sensor(scans))
         except InputError as err:
             raise InputError(seq.sequence_dir, err.problem) from None
     return init_model(
