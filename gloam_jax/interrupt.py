@@ -9,6 +9,10 @@ interrupt swallowed that way is sent again, from another thread, once the finali
 Extension code can also clear the exception without a trace; so the job calls
 :func:`raise_if_stopped` where it passes only while running normally (between trials, between
 steps), and a block that ends without the interrupt raises it on the way out.
+
+A job whose state is whole only between its steps (an odometry run between frames) holds the
+signal instead, with :func:`stop_between`: the step in progress completes, the job saves and
+stops; a second signal stops it at once.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 
 class Terminated(KeyboardInterrupt):
@@ -29,7 +33,9 @@ class Terminated(KeyboardInterrupt):
 _raised: list[int] = []
 
 
-def _interrupt(signum: int) -> KeyboardInterrupt:
+def interrupt_for(signum: int) -> KeyboardInterrupt:
+    """The exception of a stop for ``signum``: :class:`Terminated` (SIGTERM) or
+    KeyboardInterrupt."""
     return Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
 
 
@@ -37,7 +43,7 @@ def _raise_once(signum: int, frame: object) -> None:
     for repeat in (signal.SIGINT, signal.SIGTERM):
         signal.signal(repeat, signal.SIG_IGN)
     _raised.append(signum)
-    raise _interrupt(signum)
+    raise interrupt_for(signum)
 
 
 def raise_if_stopped() -> None:
@@ -46,7 +52,7 @@ def raise_if_stopped() -> None:
     if _raised:
         for repeat in (signal.SIGINT, signal.SIGTERM):  # a redelivery on its way included
             signal.signal(repeat, signal.SIG_IGN)
-        raise _interrupt(_raised[0])
+        raise interrupt_for(_raised[0])
 
 
 @contextlib.contextmanager
@@ -82,5 +88,31 @@ def stop_on(*signums: int) -> Iterator[None]:
     finally:
         _raised.clear()
         sys.unraisablehook = hook
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+@contextlib.contextmanager
+def stop_between(*signums: int) -> Iterator[Callable[[], int | None]]:
+    """Within the block, the first of ``signums`` is only noted: the yielded ``pending()``
+    returns it (else None), for the job to save and stop where its state is whole. A second
+    signal raises KeyboardInterrupt or :class:`Terminated` at once. Outside the main thread,
+    where Python sets no handlers, nothing is caught. Handlers are restored after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: None
+        return
+    previous = {s: signal.getsignal(s) for s in signums}
+    noted: list[int] = []
+
+    def note(signum: int, frame: object) -> None:
+        if noted:
+            raise interrupt_for(signum)
+        noted.append(signum)
+
+    for s in signums:
+        signal.signal(s, note)
+    try:
+        yield lambda: noted[0] if noted else None
+    finally:
         for s, handler in previous.items():
             signal.signal(s, handler)

@@ -4,16 +4,20 @@ The register-frame loop reads in order: clean and crop the scan, deskew it with 
 velocity, prepare it (voxel grid, covariances), predict its pose with constant velocity,
 register it (to the previous frame, or to the local map), check the solution's conditioning,
 update the velocity and, past a distance or angle, add it to the map as a keyframe.
+A run can stop and continue exactly: :meth:`Odometry.state` and :meth:`Odometry.restore`.
 
 Poses are ``T_world_lidar`` at each frame's reference time (mid-sweep, see the simulator), the
 world being the first frame's LiDAR frame. The velocity is the last frame-to-frame motion,
-``xi = log(inv(T_prev) @ T_curr)`` per frame interval (geometry's tangent order).
+``xi = log(inv(T_prev) @ T_curr)`` over that frame's interval (geometry's tangent order); the
+next frame's prediction and deskew scale it by the real time step, so a dropped scan (a gap in
+the times) is predicted over its whole gap.
 """
 
 from __future__ import annotations
 
+import json
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -112,22 +116,25 @@ class LocalMap:
 
     def add(self, cloud: PreparedCloud, T_world_lidar: np.ndarray) -> None:
         R, t = T_world_lidar[:3, :3], T_world_lidar[:3, 3]
-        self.keyframes.append(
-            {
-                "points": cloud.points @ R.T + t,
-                "covs": R @ cloud.covs @ R.T,
-                "features": cloud.features,
-                "normals": cloud.normals @ R.T,
-                "planarity": cloud.planarity,
-            }
-        )
-        self.keyframes = self.keyframes[-self.max_keyframes :]
+        keyframe = {
+            "points": cloud.points @ R.T + t,
+            "covs": R @ cloud.covs @ R.T,
+            "features": cloud.features,
+            "normals": cloud.normals @ R.T,
+            "planarity": cloud.planarity,
+        }
+        self.restore([*self.keyframes, keyframe], T_world_lidar)
+
+    def restore(self, keyframes: list[dict], last_pose: np.ndarray) -> None:
+        """The map of ``keyframes`` (world-frame columns, oldest first; the last ``max_keyframes``
+        kept), the newest taken at ``last_pose`` (4, 4)."""
+        self.keyframes = keyframes[-self.max_keyframes :]
         # Padding the map to its capacity once full, keyframes at the scans' padded size, keeps
         # its shape, and so the solver's, fixed. Sized here: StickyBuckets is not thread-safe.
         largest = max(len(k["points"]) for k in self.keyframes)
         self.size = self.max_keyframes * self.buckets("scan", largest)
         self._pending = self._worker.submit(_merge, list(self.keyframes), self.size)
-        self.last_pose = T_world_lidar
+        self.last_pose = last_pose
 
     def clear(self) -> None:
         """No keyframes (a merge still running is left to finish unread)."""
@@ -198,17 +205,23 @@ class Odometry:
         self._threads = ThreadpoolController()
         self.poses: list[np.ndarray] = []
         self.status: list[FrameStatus] = []
-        self.velocity = np.zeros(6)  # se(3) motion per frame interval
+        self.velocity = np.zeros(6)  # se(3) motion over the last frame interval
+        self.velocity_dt = 1.0  # s, that interval
         self.previous: PreparedCloud | None = None
         self.buckets = pc.StickyBuckets()
         self.map = LocalMap(config.max_keyframes, self.buckets)
         # The first two frames' inputs, kept until the first velocity redoes them (_redo_start).
         self._start: list[tuple] = []
 
-    def _predict(self) -> np.ndarray:
+    def _velocity(self, frame_dt: float) -> np.ndarray:
+        """The motion (6,) over a frame interval of ``frame_dt`` s, at constant velocity."""
+        return self.velocity * (frame_dt / self.velocity_dt)
+
+    def _predict(self, frame_dt: float) -> np.ndarray:
         if not self.poses:
             return np.eye(4)
-        return self.poses[-1] @ np.asarray(geo.se3_exp_jit(self.velocity), dtype=np.float64)
+        step = geo.se3_exp_jit(self._velocity(frame_dt))
+        return self.poses[-1] @ np.asarray(step, dtype=np.float64)
 
     def _preprocess(
         self,
@@ -221,7 +234,7 @@ class Odometry:
         velocity: np.ndarray | None,
     ) -> tuple[np.ndarray, np.ndarray | None]:
         if velocity is None and self.poses:
-            velocity = self.velocity
+            velocity = self._velocity(frame_dt)
         points, pca, status.num_dropped, status.num_thinned = preprocess_scan(
             scan,
             times,
@@ -237,7 +250,7 @@ class Odometry:
 
     def register_frame(
         self,
-        scan: np.ndarray,
+        scan: np.ndarray | None,
         times: np.ndarray | None = None,
         frame_dt: float = 0.1,
         source: str | None = None,
@@ -246,7 +259,10 @@ class Odometry:
         """Estimate the pose of ``scan`` (N, 3+), with optional per-point times (N,) in seconds
         from its reference time; ``frame_dt`` is the time since the previous frame;
         ``features`` (N, D): the backbone's, for the learned methods.
-        Returns ``T_world_lidar`` (4, 4). Bad scans fall back on the motion prior."""
+        Returns ``T_world_lidar`` (4, 4). Bad scans fall back on the motion prior; so does
+        ``scan`` None, a scan that could not be read (``source`` then says why)."""
+        if not (is_positive(frame_dt)):
+            raise InputError(source, f"frame_dt must be a positive time step (s), not {frame_dt!r}")
         # A frame's NumPy products are thin ((N, 3) @ (3, 3), (N, D) @ (D, 6)): threaded BLAS
         # only fights XLA's and the k-d tree's threads for the cores.
         with self._threads.limit(limits=1, user_api="blas"):
@@ -258,6 +274,65 @@ class Odometry:
                 T = self._redo_start()
             return T
 
+    # The columns of a prepared cloud that a state keeps (the k-d tree is rebuilt from them).
+    _COLUMNS: ClassVar[tuple[str, ...]] = ("points", "covs", "features", "normals", "planarity")
+
+    @property
+    def resumable(self) -> bool:
+        """Whether :meth:`state` holds all there is: not while the first two frames wait to be
+        redone with the first velocity (:meth:`_redo_start`)."""
+        return not self._start
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything the next frame depends on, as named arrays (for ``np.savez``): poses
+        (F, 4, 4), velocity, padded sizes, frame statuses and the local map's keyframes
+        (frame_to_model) or the previous scan (frame_to_frame), bit for bit. An
+        :class:`Odometry` of the same settings and model that :meth:`restore` s it registers the
+        next frames exactly as this one would."""
+        if not self.resumable:
+            raise ValueError("the first frames are not final yet (see resumable)")
+        floors, frozen = self.buckets.state()
+        state = {
+            "poses": np.stack(self.poses),
+            "velocity": self.velocity,
+            "velocity_dt": np.float64(self.velocity_dt),
+            "bucket_roles": np.array(list(floors), dtype=str),
+            "bucket_sizes": np.array(list(floors.values()), dtype=np.int64),
+            "buckets_frozen": np.bool_(frozen),
+            "status": np.array(json.dumps([asdict(s) for s in self.status])),
+        }
+        clouds = {f"keyframe{j}": k for j, k in enumerate(self.map.keyframes)}
+        if self.previous is not None and self.config.mode == "frame_to_frame":
+            clouds["previous"] = {c: getattr(self.previous, c) for c in self._COLUMNS}
+        if self.map.last_pose is not None:
+            state["map_last_pose"] = self.map.last_pose
+        for name, columns in clouds.items():
+            state |= {f"{name}_{c}": v for c, v in columns.items() if v is not None}
+        return state
+
+    def restore(self, state: dict[str, np.ndarray]) -> None:
+        """Continue from a :meth:`state` (of a run with these settings and this model)."""
+        self.poses = list(np.asarray(state["poses"], np.float64))
+        self.status = [FrameStatus(**s) for s in json.loads(str(state["status"]))]
+        self.velocity = np.asarray(state["velocity"], np.float64)
+        self.velocity_dt = float(state["velocity_dt"])
+        roles, sizes = state["bucket_roles"].tolist(), state["bucket_sizes"].tolist()
+        floors = dict(zip(roles, sizes, strict=True))
+        self.buckets.restore(floors, bool(state["buckets_frozen"]))
+        self._start = []
+
+        def columns(name: str) -> dict[str, np.ndarray | None]:
+            return {c: state.get(f"{name}_{c}") for c in self._COLUMNS}
+
+        keyframes = [columns(f"keyframe{j}") for j in range(self.config.max_keyframes)]
+        keyframes = [k for k in keyframes if k["points"] is not None]
+        if keyframes:
+            self.map.restore(keyframes, np.asarray(state["map_last_pose"]))
+        if "previous_points" in state:
+            previous = columns("previous")
+            self.previous = PreparedCloud(tree=KdTree(previous["points"], "previous scan"),
+                                          **previous)  # fmt: skip
+
     def _redo_start(self) -> np.ndarray:
         """Frames 0 and 1 again, both deskewed with the motion between them (the first
         velocity). Before it was known they were not deskewed; left so, they would be the map
@@ -268,6 +343,7 @@ class Odometry:
         self._start = []
         # As at the first pass but for the deskew: the same motion prior (none) for frame 1.
         self.poses, self.status, self.previous, self.velocity = [], [], None, np.zeros(6)
+        self.velocity_dt = 1.0
         self.map.clear()
         for inputs in start:
             T = self._register(*inputs, velocity=velocity)
@@ -279,11 +355,14 @@ class Odometry:
         """One frame, deskewed with ``velocity`` (default: the current one; none for the
         first frame)."""
         cfg, status = self.config, FrameStatus()
-        if self.needs_features and features is None:
-            raise InputError(source, f"method '{cfg.method}' needs per-point features")
         if len(self.poses) == cfg.warmup_frames:
             self.buckets.freeze()
-        T_pred = self._predict()
+        T_pred = self._predict(frame_dt)
+        if scan is None:
+            status.error = source
+            return self._accept(T_pred, None, status, frame_dt)
+        if self.needs_features and features is None:
+            raise InputError(source, f"method '{cfg.method}' needs per-point features")
         try:
             points, pca = self._preprocess(
                 scan, times, frame_dt, status, source, features, velocity
@@ -295,16 +374,16 @@ class Odometry:
             )
         except InputError as err:
             status.error = str(err)
-            return self._accept(T_pred, None, status)
+            return self._accept(T_pred, None, status, frame_dt)
         status.num_points = len(cloud.points)
         # Taken only now: the map's merge ran beside this frame's preprocessing.
         target = self.previous if cfg.mode == "frame_to_frame" else self.map.cloud
         if target is None:  # first usable scan (earlier ones, if any, were bad): it anchors
-            return self._accept(T_pred, cloud, status)
+            return self._accept(T_pred, cloud, status, frame_dt)
         # Registration in the target's frame: the previous scan's, or the world (local map).
         if cfg.mode == "frame_to_frame":
             T_world_target, sizes = self.poses[-1], (scan_size, scan_size)
-            prior = np.asarray(geo.se3_exp_jit(self.velocity), dtype=np.float64)
+            prior = np.asarray(geo.se3_exp_jit(self._velocity(frame_dt)), dtype=np.float64)
         else:
             T_world_target, sizes, prior = np.eye(4), (scan_size, self.map.size), T_pred
         result = align_prepared(target, cloud, prior, cfg.gicp, sizes)
@@ -319,14 +398,14 @@ class Odometry:
             status.degenerate = True
             T = prior if result.num_inliers == 0 else remap(prior, T, weak, cfg.gicp.lever_arm)
         T = T_world_target @ T
-        return self._accept(T, cloud, status)
+        return self._accept(T, cloud, status, frame_dt)
 
     def _accept(
-        self, T: np.ndarray, cloud: PreparedCloud | None, status: FrameStatus
+        self, T: np.ndarray, cloud: PreparedCloud | None, status: FrameStatus, frame_dt: float
     ) -> np.ndarray:
         if self.poses:
             xi = geo.se3_log_jit(np.linalg.inv(self.poses[-1]) @ T)
-            self.velocity = np.asarray(xi, dtype=np.float64)
+            self.velocity, self.velocity_dt = np.asarray(xi, dtype=np.float64), frame_dt
         self.poses.append(T)
         self.status.append(status)
         if cloud is not None:

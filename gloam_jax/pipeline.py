@@ -17,15 +17,25 @@ folder's name)::
     trajectory.png            the trajectory (against the ground truth, with the error per
                               segment length when the devkit's segments fit)
     config.yaml               the settings used
+    frames.json               each frame's flags (gloam_jax.odometry.FrameStatus)
+    checkpoint.npz            while the run is unfinished: the odometry's state, to resume
+
+The poses, frames.json and the checkpoint are written every FLUSH_EVERY frames, each file
+atomically, and when the run stops; metrics.json says ``status``: ``running`` (with the pid:
+a run whose process is gone was killed), ``interrupted`` (SIGINT, SIGTERM), ``stopped`` (a
+bad scan) or ``finished``, and how many frames are written. A run continues from its
+checkpoint exactly as it would have gone on (the state is saved bit for bit).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import signal
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -36,10 +46,16 @@ from gloam_jax.datasets import Dataset, open_dataset
 from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone, get_backbone, intensity_warning
 from gloam_jax.guard import Choice, choose
+from gloam_jax.interrupt import interrupt_for, stop_between
 from gloam_jax.models import GLOAMModel
 from gloam_jax.odometry import Odometry, OdometryConfig
-from gloam_jax.preprocess import ONE_INSTANT, detect_time_convention, resolve_deskew
+from gloam_jax.preprocess import ONE_INSTANT, check_units, detect_time_convention, resolve_deskew
 from gloam_jax.sensor import SENSOR_SCANS
+
+FLUSH_EVERY = 100  # frames between two writes of the poses and the checkpoint
+CHECKPOINT = "checkpoint.npz"
+CHECKPOINT_VERSION = 1
+BAD_SCAN_POLICIES = ("stop", "skip")
 
 
 def select_frames(n: int, start: int = 0, frames: int | None = None, stride: int = 1) -> range:
@@ -104,59 +120,226 @@ def run_dataset(
     *,
     progress: Callable[[int, float], None] | None = None,
     features_dir: str | Path | None = None,
+    on_bad_scan: str = "stop",
+    resume: Checkpoint | None = None,
+    flush_every: int = FLUSH_EVERY,
 ) -> dict:
     """Run odometry over ``frames`` of ``dataset`` and write the run folder; returns the
     metrics dict.
 
-    Every scan of ``frames`` is checked (sizes, headers) before the first is registered.
-    ``auto`` deskewing is resolved by the data (:func:`plan_deskew`), the model (or the
-    guard's plain GICP) by the first scans' sensor (:func:`choose_model`). Learned methods get
-    per-point features from the model's backbone, or from one file per scan in
-    ``features_dir`` (the ``precomputed`` backbone). ``progress(k, ms)`` after the k-th frame.
-    The time per frame counts registration only; feature extraction is timed separately
-    (``median_ms_features``).
+    Every scan of ``frames`` is checked (sizes, headers) and the scan times (increasing) before
+    the first is registered; each scan's contents as it is read. ``auto`` deskewing is resolved
+    by the data (:func:`plan_deskew`), the model (or the guard's plain GICP) by the first
+    scans' sensor (:func:`choose_model`). Learned methods get per-point features from the
+    model's backbone, or from one file per scan in ``features_dir`` (the ``precomputed``
+    backbone). ``progress(k, ms)`` after the k-th frame. The time per frame counts
+    registration only; feature extraction is timed separately (``median_ms_features``).
+
+    Poses, frame flags and a checkpoint of the odometry are written every ``flush_every``
+    frames, each file atomically; on SIGINT or SIGTERM after the frame in progress, with
+    ``metrics.json`` saying ``interrupted`` (then KeyboardInterrupt, or Terminated, is raised).
+    A scan that cannot be read, or whose contents are wrong, stops the run (``on_bad_scan``
+    ``stop``: InputError naming the file and frame, the poses before it kept) or keeps the
+    motion prior for its frame (``skip``). ``resume``: continue the run of that checkpoint.
     """
     n = len(frames)
     if n < 2:
         raise InputError(
             dataset.scan_path(frames[0]) if n else None, f"need at least 2 scans, have {n}"
         )
+    if on_bad_scan not in BAD_SCAN_POLICIES:
+        raise InputError(None, f"--on-bad-scan must be stop or skip, not {on_bad_scan!r}")
+    out = Path(out_dir)
     dataset.check(frames)
+    check_times(dataset, frames)
+    check_units(dataset.frame(frames[0])[0], config.preprocess, dataset.scan_path(frames[0]))
     resolved, deskew = plan_deskew(dataset, config, frames[0])
     choice = choose_model(dataset, resolved, frames, features_dir)
     odometry = Odometry(choice.config, choice.model)
     backbone = _backbone(odometry, features_dir)
     times = dataset.times
-    frame_ms, feature_ms = [], []
-    warnings = [] if choice.warning is None else [choice.warning]
-    for k, i in enumerate(frames):
-        scan, point_times = dataset.frame(i)
-        if k == 0 and backbone is not None:
-            warning = intensity_warning(backbone, odometry.model.pca, scan)
-            warnings += [] if warning is None else [warning]
-        if deskew["used"] != "timestamps":
-            point_times = None
-        prev = frames[k - 1] if k > 0 else None
-        frame_dt = (
-            float(times[i] - times[prev]) if prev is not None else config.preprocess.sweep_duration
-        )
-        path = dataset.scan_path(i)
-        features = None
-        if backbone is not None:
-            t0 = time.perf_counter()
-            features = backbone(scan, path=path, frame=i)
-            feature_ms.append(1e3 * (time.perf_counter() - t0))
-        t0 = time.perf_counter()
-        odometry.register_frame(scan, point_times, frame_dt, source=str(path), features=features)
-        frame_ms.append(1e3 * (time.perf_counter() - t0))
-        if progress is not None:
-            progress(k, frame_ms[-1])
+    record = {
+        "version": CHECKPOINT_VERSION, "dataset": dataset.name, "num_scans": len(dataset),
+        "start": frames.start, "stride": frames.step, "count": n,
+        "features_dir": None if features_dir is None else str(features_dir),
+        "frame_ms": [], "feature_ms": [], "skipped": [],
+        "warnings": [] if choice.warning is None else [choice.warning],
+    }  # fmt: skip
+    if resume is not None:
+        record = resume.continues(record)
+        odometry.restore(resume.state)
+    else:
+        dump_config(config, out / "config.yaml")
+    frame_ms, feature_ms = record["frame_ms"], record["feature_ms"]
     extra = {"deskew": deskew, "defaults": list(dataset.defaults), "dataset": dataset.kind,
              "frames": {"start": frames.start, "stride": frames.step, "count": n},
-             "model_choice": choice.record, "warnings": warnings}  # fmt: skip
+             "model_choice": choice.record, "warnings": record["warnings"],
+             "skipped_frames": record["skipped"],
+             "frames_after_a_gap": time_gaps(times[np.asarray(frames)])}  # fmt: skip
+
+    def save(status: dict) -> None:
+        if odometry.poses:
+            flush(dataset, odometry, config, out, frames, record, {**status, **extra})
+
+    with stop_between(signal.SIGINT, signal.SIGTERM) as pending:
+        for k in range(len(odometry.poses), n):
+            i = frames[k]
+            path = dataset.scan_path(i)
+            frame_dt = (
+                float(times[i] - times[frames[k - 1]]) if k else config.preprocess.sweep_duration
+            )
+            try:
+                scan, point_times = dataset.frame(i)
+                if k:  # frame 0 was checked before the run
+                    check_units(scan, config.preprocess, path)
+            except InputError as err:
+                if on_bad_scan == "stop":
+                    save({"status": "stopped", "error": str(err)})
+                    raise InputError(
+                        err.source, f"bad scan at frame {i}: {err.problem} (the {k} poses "
+                        "before it are kept; --on-bad-scan skip goes on past it)"
+                    ) from None  # fmt: skip
+                record["skipped"].append(k)
+                odometry.register_frame(None, None, frame_dt, source=f"skipped: {err}")
+            else:
+                if k == 0 and backbone is not None:
+                    warning = intensity_warning(backbone, odometry.model.pca, scan)
+                    record["warnings"] += [] if warning is None else [warning]
+                if deskew["used"] != "timestamps":
+                    point_times = None
+                features = None
+                if backbone is not None:
+                    t0 = time.perf_counter()
+                    features = backbone(scan, path=path, frame=i)
+                    feature_ms.append(1e3 * (time.perf_counter() - t0))
+                t0 = time.perf_counter()
+                odometry.register_frame(scan, point_times, frame_dt, source=str(path),
+                                        features=features)  # fmt: skip
+                frame_ms.append(1e3 * (time.perf_counter() - t0))
+            if progress is not None:
+                progress(k, frame_ms[-1] if frame_ms else 0.0)
+            if (signum := pending()) is not None:
+                save({"status": "interrupted", "signal": signal.Signals(signum).name})
+                raise interrupt_for(signum)
+            if (k + 1) % flush_every == 0 and k + 1 < n:
+                save({"status": "running", "pid": os.getpid()})
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
-    return write_run(dataset, odometry, config, out_dir, frames, frame_ms, extra)
+    result = write_run(dataset, odometry, config, out, frames, frame_ms, extra)
+    (out / CHECKPOINT).unlink(missing_ok=True)
+    return result
+
+
+def check_times(dataset: Dataset, frames: range) -> None:
+    """InputError naming the first frame of ``frames`` whose scan time is not after the one
+    before it (a time going backwards or repeating)."""
+    stamps = dataset.times[np.asarray(frames)]
+    bad = np.flatnonzero(np.diff(stamps) <= 0)
+    if bad.size:
+        k = int(bad[0]) + 1
+        how = "repeats" if stamps[k] == stamps[k - 1] else "goes back before"
+        raise InputError(
+            dataset.scan_path(frames[k]),
+            f"frame {frames[k]}: its time {stamps[k]:.6f} s {how} frame {frames[k - 1]}'s "
+            f"({stamps[k - 1]:.6f} s); scan times must increase",
+        )
+
+
+def time_gaps(stamps: np.ndarray) -> list[int]:
+    """The frames (k, of the stamps (F,)) that come after a gap: over 1.5 times the median time
+    step since the frame before (dropped scans, predicted over the whole gap)."""
+    steps = np.diff(stamps)
+    return (np.flatnonzero(steps > 1.5 * np.median(steps)) + 1).tolist()
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """What a run folder holds to continue an unfinished run: its ``record`` (the data and
+    frames run, timings and flags so far), the odometry ``state`` (:meth:`Odometry.state`)
+    and how the run ``ended`` (a sentence)."""
+
+    path: Path
+    record: dict
+    state: dict[str, np.ndarray]
+    ended: str
+
+    @classmethod
+    def read(cls, run_dir: str | Path) -> Checkpoint:
+        """The checkpoint of ``run_dir``; InputError when there is none to continue from
+        (finished, still running, stopped before its first flush)."""
+        run_dir = Path(run_dir)
+        path, metrics_path = run_dir / CHECKPOINT, run_dir / "metrics.json"
+        metrics = json.loads(metrics_path.read_text()) if metrics_path.exists() else {}
+        status = metrics.get("status")
+        if status == "finished":
+            raise InputError(run_dir, "this run finished: nothing to resume")
+        if status == "running" and _alive(metrics.get("pid")):
+            raise InputError(run_dir, f"this run is still going (process {metrics['pid']})")
+        if not path.exists():
+            raise InputError(
+                run_dir, f"holds no {CHECKPOINT}: the run stopped before its first "
+                f"{FLUSH_EVERY} frames were written; start it again"
+            )  # fmt: skip
+        state = dict(np.load(path, allow_pickle=False))
+        record = json.loads(str(state.pop("record")))
+        done = record["frames_done"]
+        ended = {
+            "interrupted": f"interrupted ({metrics.get('signal')}) after {done} frames",
+            "stopped": f"stopped after {done} frames by a bad scan: {metrics.get('error')}",
+        }.get(status, f"killed after {done} frames written (no clean stop: SIGKILL or a crash)")
+        return cls(path, record, state, ended)
+
+    def continues(self, record: dict) -> dict:
+        """This run's record, after checking that ``record`` (of the run to continue it) is
+        of the same data, frames and checkpoint version."""
+        for key in ("version", "dataset", "num_scans", "start", "stride", "count",
+                    "features_dir"):  # fmt: skip
+            if self.record[key] != record[key]:
+                raise InputError(
+                    self.path, f"is a run with {key} {self.record[key]!r}, not {record[key]!r}"
+                )
+        return dict(self.record)
+
+
+def _alive(pid: int | None) -> bool:
+    """Whether process ``pid`` (of this machine) runs, other than this one."""
+    if pid is None or pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def flush(dataset: Dataset, odometry: Odometry, config: OdometryConfig, out: Path,
+          frames: range, record: dict, metrics: dict) -> None:  # fmt: skip
+    """Write what is computed so far, each file atomically: the poses, ``frames.json``, the
+    settings, the checkpoint and, last, ``metrics.json`` (``metrics``, with ``frames_done`` and
+    the dataset index of the next scan)."""
+    done = len(odometry.poses)
+    write_poses(dataset, odometry.poses, out, np.asarray(frames[:done]))
+    io.write_atomic(out / "frames.json", json.dumps([asdict(s) for s in odometry.status]))
+    dump_config(config, out / "config.yaml")
+    if odometry.resumable:
+        record = {**record, "frames_done": done}
+        io.write_npz(out / CHECKPOINT, record=np.array(json.dumps(record)), **odometry.state())
+    metrics = {"sequence": dataset.name, "frames_done": done,
+               "next_scan": frames[done] if done < len(frames) else None, **metrics}  # fmt: skip
+    io.write_atomic(out / "metrics.json", json.dumps(metrics, indent=2))
+
+
+def write_poses(dataset: Dataset, poses: list[np.ndarray], out: Path, index: np.ndarray) -> None:
+    """The estimate of the scans ``index`` (F,) (poses (F, 4, 4) in the LiDAR frame) as KITTI
+    (ground-truth frame and LiDAR frame) and TUM files."""
+    name = dataset.name
+    T_lidar = np.stack(poses)
+    T_cam = io.lidar_to_cam_poses(T_lidar, dataset.Tr_cam_velo)
+    io.write_kitti_poses(out / f"{name}_poses_kitti.txt", T_cam)
+    io.write_kitti_poses(out / f"{name}_poses_lidar_kitti.txt", T_lidar)
+    io.write_tum_poses(out / f"{name}_poses_tum.txt", dataset.times[index], T_cam)
 
 
 def choose_model(
@@ -187,18 +370,17 @@ def _backbone(odometry: Odometry, features_dir: str | Path | None) -> Backbone |
 
 def write_run(dataset: Dataset, odometry: Odometry, config: OdometryConfig, out_dir: str | Path,
               frames: range, frame_ms: list[float], extra: dict) -> dict:  # fmt: skip
+    """The finished run's files: poses, ground truth, metrics, plot, settings, flags."""
     out = Path(out_dir)
     name, n = dataset.name, len(frames)
     index = np.asarray(frames)
-    T_lidar = np.stack(odometry.poses)
-    T_cam = io.lidar_to_cam_poses(T_lidar, dataset.Tr_cam_velo)
+    write_poses(dataset, odometry.poses, out, index)
+    T_cam = io.lidar_to_cam_poses(np.stack(odometry.poses), dataset.Tr_cam_velo)
     stamps = dataset.times[index]
-    io.write_kitti_poses(out / f"{name}_poses_kitti.txt", T_cam)
-    io.write_kitti_poses(out / f"{name}_poses_lidar_kitti.txt", T_lidar)
-    io.write_tum_poses(out / f"{name}_poses_tum.txt", stamps, T_cam)
     dump_config(config, out / "config.yaml")
     flags = [asdict(s) for s in odometry.status]
     result: dict = {
+        "status": "finished",
         "sequence": name,
         "num_frames": n,
         "median_ms_per_frame": float(np.median(frame_ms[1:] if n > 2 else frame_ms)),

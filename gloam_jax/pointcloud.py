@@ -165,6 +165,13 @@ class StickyBuckets:
     def freeze(self) -> None:
         self._frozen = True
 
+    def state(self) -> tuple[dict[str, int], bool]:
+        """The sizes per role and whether they are frozen (for :meth:`restore`)."""
+        return dict(self._floor), self._frozen
+
+    def restore(self, floors: dict[str, int], frozen: bool) -> None:
+        self._floor, self._frozen = dict(floors), frozen
+
     def limit(self, role: str) -> int | None:
         """The most rows ``role`` takes once frozen; None while sizes may still grow."""
         return self._floor.get(role) if self._frozen else None

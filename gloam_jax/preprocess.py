@@ -226,6 +226,27 @@ def deskew(
     return np.asarray(out, dtype=np.float64)[: len(points)]
 
 
+# A scan whose median range is beyond this (m) is not in metres.
+MAX_MEDIAN_RANGE = 1000.0
+
+
+def check_units(scan: np.ndarray, config: PreprocessConfig, source=None) -> None:
+    """InputError when a scan (N, 3+) looks like millimetres rather than metres: its median
+    range is over 1 km, or 99 % of its (finite) points lie beyond ``config.max_range``."""
+    ranges = np.linalg.norm(scan[:, :3], axis=1)
+    ranges = ranges[np.isfinite(ranges)]
+    if len(ranges) == 0:
+        return  # nothing to judge: the odometry reports a scan without points
+    median, beyond = float(np.median(ranges)), float(np.mean(ranges > config.max_range))
+    if median > MAX_MEDIAN_RANGE or beyond >= 0.99:
+        raise InputError(
+            source,
+            f"median range {median:.0f} m, {100 * beyond:.1f} % of points beyond "
+            f"preprocess.max_range ({config.max_range:g} m): the scan looks like millimetres, "
+            "not metres (scale it by 0.001)",
+        )
+
+
 def centre_rows(
     scan: np.ndarray, config: PreprocessConfig, source: str | None = None
 ) -> np.ndarray:

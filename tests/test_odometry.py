@@ -158,7 +158,7 @@ def test_bad_scans_fall_back_on_the_motion_prior(sim_sequence):
     odometry = Odometry(OdometryConfig())
     for i in range(3):
         odometry.register_frame(seq.scan(i), seq.point_times(i), 0.1)
-    predicted = odometry._predict()
+    predicted = odometry._predict(0.1)
     odometry.register_frame(np.zeros((0, 4), np.float32), None, 0.1, source="empty.bin")
     assert "empty.bin: empty scan" in odometry.status[-1].error
     np.testing.assert_allclose(odometry.poses[-1], predicted)

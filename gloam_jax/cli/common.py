@@ -11,7 +11,6 @@ import functools
 import itertools
 import json
 import os
-import shutil
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -210,7 +209,8 @@ def cache_dir() -> Path:
 def run_folder(out: Path) -> Iterator[Path]:
     """A new run folder under ``out``, made before the work starts (so an unwritable ``out``
     fails at once) and exclusively (runs started in the same second get ``-1``, ``-2``...).
-    A run that fails removes its folder (and ``out``, if it made it and it is empty); one that
+    A run that fails before writing anything removes its folder (and ``out``, if it made it
+    and it is empty), one that wrote results (an interrupted run's poses) keeps them; one that
     finishes becomes ``out/latest``."""
     latest = out / "latest"
     if latest.exists() and not latest.is_symlink():
@@ -231,7 +231,8 @@ def run_folder(out: Path) -> Iterator[Path]:
     try:
         yield run_dir
     except BaseException:
-        shutil.rmtree(run_dir, ignore_errors=True)
+        if not any(run_dir.iterdir()):
+            run_dir.rmdir()
         if made_out and not any(out.iterdir()):
             out.rmdir()
         raise

@@ -19,6 +19,7 @@ from gloam_jax.cli.common import (
     cache_dir,
     console,
     frame_progress,
+    mark_latest,
     metrics_table,
     run_folder,
     use_compilation_cache,
@@ -90,8 +91,13 @@ def run_odometry(
     start: int = 0,
     frames: int | None = None,
     stride: int = 1,
+    on_bad_scan: str = "stop",
+    resume=None,
 ) -> dict:
+    """``gloam run`` into ``run_dir`` (``resume``: continuing that folder's Checkpoint), with
+    its summary; an interrupt exits with 130 (SIGINT) or 143 (SIGTERM), the poses kept."""
     from gloam_jax.datasets import open_dataset
+    from gloam_jax.interrupt import Terminated
     from gloam_jax.pipeline import run_dataset, select_frames
 
     dataset = open_dataset(data, sequence)
@@ -101,8 +107,23 @@ def run_odometry(
     )
     for note in dataset.defaults:
         console.print(f"  default: {note}")
-    with frame_progress(f"{config.method} {dataset.name}", len(chosen)) as step:
-        result = run_dataset(dataset, config, run_dir, chosen, progress=step, features_dir=features)
+    if resume is not None:
+        console.print(f"  resuming {run_dir}: {resume.ended}")
+    again = f"gloam run {data}{f' --sequence {sequence}' if sequence else ''} --resume {run_dir}"
+    try:
+        with frame_progress(f"{config.method} {dataset.name}", len(chosen)) as step:
+            result = run_dataset(dataset, config, run_dir, chosen, progress=step,
+                                 features_dir=features, on_bad_scan=on_bad_scan,
+                                 resume=resume)  # fmt: skip
+    except KeyboardInterrupt as stop:
+        written = _frames_written(run_dir)
+        console.print(f"interrupted: {written} frames written to {run_dir}; go on with: {again}")
+        raise typer.Exit(143 if isinstance(stop, Terminated) else 130) from None
+    except InputError:
+        if _frames_written(run_dir):
+            console.print(f"{_frames_written(run_dir)} frames written to {run_dir}; after a "
+                          f"fix, or to skip the scan: {again} --on-bad-scan skip")  # fmt: skip
+        raise
     console.print(f"  {result['deskew']['reason']}")
     choice = result["model_choice"]
     if "decision" in choice:  # a learned method: which model ran, on which sensor, and why
@@ -121,12 +142,26 @@ def run_odometry(
         console.print(f"RTE unavailable ({result['rte_unavailable']})")
     if "ate" in result:
         console.print(f"ATE (SE(3)-aligned): rmse {result['ate']['rmse']:.3f} m")
+    if result["skipped_frames"]:
+        skipped = ", ".join(map(str, result["skipped_frames"]))
+        console.print(f"  skipped (bad scans, motion prior kept): frame(s) {skipped}")
+    if result["frames_after_a_gap"]:
+        console.print(f"  {len(result['frames_after_a_gap'])} gap(s) in the scan times (dropped "
+                      "scans), predicted over the real time step")  # fmt: skip
     flagged = len(result["degenerate_frames"]) + len(result["bad_input_frames"])
     console.print(
         f"median {result['median_ms_per_frame']:.1f} ms/frame; {flagged} frame(s) fell back on "
         f"the motion prior; results: {run_dir}"
     )
     return result
+
+
+def _frames_written(run_dir: Path) -> int:
+    """How many frames' poses a run folder holds (its metrics.json says)."""
+    import json
+
+    metrics = run_dir / "metrics.json"
+    return json.loads(metrics.read_text()).get("frames_done", 0) if metrics.exists() else 0
 
 
 def method_settings(config: Path | None, method: str | None, weights: Path | None):
@@ -188,17 +223,63 @@ def run(
         Path | None,
         typer.Option(help="Folder of per-scan features (NNNNNN.npy/.txt) instead of the model's."),
     ] = None,
+    on_bad_scan: Annotated[
+        str,
+        typer.Option(
+            help="A scan that cannot be read or is wrong (damaged, in millimetres): stop there "
+            "(naming it; the poses before it are kept) or skip it (its pose from the motion "
+            "prior, flagged in frames.json)."
+        ),
+    ] = "stop",
+    resume: Annotated[
+        Path | None,
+        typer.Option(
+            help="Continue this unfinished run folder (interrupted, killed or stopped) from its "
+            "last written frame, with its own settings and frames."
+        ),
+    ] = None,
     compilation_cache: Annotated[bool, typer.Option(help=CACHE_HELP)] = True,
 ) -> None:
     """Run LiDAR odometry on a KITTI sequence or a folder of scans (real or simulated), and
-    score it when ground truth exists."""
-    settings = method_settings(config, method, weights)
+    score it when ground truth exists. Poses are written every 100 frames and on Ctrl-C or
+    SIGTERM; --resume continues such a run."""
+    if on_bad_scan not in ("stop", "skip"):
+        raise InputError(None, f"--on-bad-scan must be stop or skip, not {on_bad_scan!r}")
     if compilation_cache:
         use_compilation_cache()
+    if resume is not None:
+        resume_run(data, sequence, resume, on_bad_scan,
+                   {"--method": method, "--config": config, "--weights": weights,
+                    "--features": features, "--start": start or None, "--frames": frames,
+                    "--stride": None if stride == 1 else stride})  # fmt: skip
+        return
+    settings = method_settings(config, method, weights)
     with run_folder(out) as run_dir:
-        run_odometry(
-            data, sequence, settings, run_dir, features, start=start, frames=frames, stride=stride
-        )
+        run_odometry(data, sequence, settings, run_dir, features, start=start, frames=frames,
+                     stride=stride, on_bad_scan=on_bad_scan)  # fmt: skip
+
+
+def resume_run(
+    data: Path, sequence: str | None, run_dir: Path, on_bad_scan: str, given: dict
+) -> None:
+    """Continue the unfinished run in ``run_dir`` with the settings and frames it recorded;
+    ``given``: the other options on the command line, which must be left out."""
+    from gloam_jax.config import load_config
+    from gloam_jax.pipeline import Checkpoint
+
+    named = [name for name, value in given.items() if value is not None]
+    if named:
+        raise InputError(
+            None, f"--resume continues a run with its own settings and frames: leave out "
+            f"{', '.join(named)}"
+        )  # fmt: skip
+    checkpoint = Checkpoint.read(run_dir)
+    record = checkpoint.record
+    features = None if record["features_dir"] is None else Path(record["features_dir"])
+    run_odometry(data, sequence, load_config(run_dir / "config.yaml"), run_dir, features,
+                 start=record["start"], frames=record["count"], stride=record["stride"],
+                 on_bad_scan=on_bad_scan, resume=checkpoint)  # fmt: skip
+    mark_latest(run_dir)
 
 
 @app.command(epilog="Example:\n\n  gloam demo --frames 150 --out results")

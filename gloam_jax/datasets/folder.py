@@ -3,7 +3,8 @@ files sorted by name (numbers in names compared as numbers: ``2.pcd`` before ``1
 
 Optional files beside the scans: ``calib.txt`` (its ``Tr``: LiDAR to the frame of the ground
 truth; without it, the LiDAR frame), ``times.txt`` (one time a scan, s; without it, 10 Hz),
-``poses.txt`` (ground truth, KITTI format; without it, no scoring) and per-point times, as a
+``poses.txt`` (ground truth, KITTI format; without it, no scoring; a missing file number is a
+gap in time) and per-point times, as a
 PCD/PLY time field (``t``, ``time``, ``timestamp``, ...) or ``timestamps/<scan name>.npy``.
 Each default taken is listed in ``defaults``. Scans are not assumed motion-distorted: the
 ``auto`` deskew policy deskews only with per-point times.
@@ -20,6 +21,7 @@ from gloam_jax.datasets.base import Dataset, register
 from gloam_jax.errors import InputError
 from gloam_jax.io import read_calib, read_kitti_poses, read_times
 from gloam_jax.io.files import load_npy
+from gloam_jax.io.kitti import default_times
 from gloam_jax.io.scans import SCAN_SUFFIXES, check_scan, has_time_field, read_scan_with_times
 
 
@@ -68,8 +70,8 @@ class FolderDataset(Dataset):
             if len(self._times) != n:
                 raise InputError(times, f"{len(self._times)} timestamps but {n} scans")
         else:
-            self._times = np.arange(n) * 0.1
-            self.defaults.append("no times.txt: scans taken at 10 Hz")
+            self._times, note = default_times(scans)
+            self.defaults.append(note)
         poses = path / "poses.txt"
         self._gt = None
         if poses.exists():

@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +94,23 @@ def read_times(path: PathLike) -> np.ndarray:
     """One timestamp (seconds) a line -> ``(N,)`` float64."""
     text, name = read_text(path)
     return parse_rows(text, name, 1, "timestamp")[:, 0]
+
+
+def default_times(paths: list[Path], period: float = 0.1) -> tuple[np.ndarray, str]:
+    """Scan times (N,) s for scans without a ``times.txt``, and the note saying so: each scan's
+    file number (the digits its name ends with) times ``period``, from the first, so that a
+    missing file is a gap in time; ``period`` apart in file order where the names carry no
+    increasing numbers."""
+    numbers = [re.search(r"(\d+)$", p.stem) for p in paths]
+    note = f"no times.txt: scans taken at {1 / period:g} Hz"
+    if all(numbers):
+        index = np.array([int(m.group(1)) for m in numbers])
+        if np.all(np.diff(index) > 0):
+            missing = int(index[-1] - index[0] + 1 - len(index))
+            if missing:
+                note += f", by their file numbers ({missing} numbers missing: gaps in time)"
+            return (index - index[0]) * period, note
+    return np.arange(len(paths)) * period, note
 
 
 def read_labels(path: PathLike, expected_count: int | None = None) -> np.ndarray:
@@ -181,8 +199,9 @@ class KittiSequence:
                     times_path, f"{len(self._times)} timestamps but {n} scans in {velodyne}"
                 )
         else:
-            self._times = _read_only(np.arange(n) * 0.1)
-            self.defaults.append("no times.txt: scans taken at 10 Hz")
+            times, note = default_times(self._scan_paths)
+            self._times = _read_only(times)
+            self.defaults.append(note)
 
         poses_path = self.root / "poses" / f"{sequence}.txt"
         self._poses_cam: np.ndarray | None = None
