@@ -233,7 +233,8 @@ MAX_MEDIAN_RANGE = 1000.0
 def check_units(scan: np.ndarray, config: PreprocessConfig, source=None) -> None:
     """InputError when a scan (N, 3+) looks like millimetres rather than metres: its median
     range is over 1 km, or 99 % of its (finite) points lie beyond ``config.max_range``."""
-    ranges = np.linalg.norm(scan[:, :3], axis=1)
+    with np.errstate(invalid="ignore", over="ignore"):  # a damaged file's garbage values
+        ranges = np.linalg.norm(scan[:, :3].astype(np.float64), axis=1)
     ranges = ranges[np.isfinite(ranges)]
     if len(ranges) == 0:
         return  # nothing to judge: the odometry reports a scan without points

@@ -93,6 +93,7 @@ def run_odometry(
     stride: int = 1,
     on_bad_scan: str = "stop",
     resume=None,
+    flush_every: int = 100,
 ) -> dict:
     """``gloam run`` into ``run_dir`` (``resume``: continuing that folder's Checkpoint), with
     its summary; an interrupt exits with 130 (SIGINT) or 143 (SIGTERM), the poses kept."""
@@ -114,7 +115,7 @@ def run_odometry(
         with frame_progress(f"{config.method} {dataset.name}", len(chosen)) as step:
             result = run_dataset(dataset, config, run_dir, chosen, progress=step,
                                  features_dir=features, on_bad_scan=on_bad_scan,
-                                 resume=resume)  # fmt: skip
+                                 resume=resume, flush_every=flush_every)  # fmt: skip
     except KeyboardInterrupt as stop:
         written = _frames_written(run_dir)
         console.print(f"interrupted: {written} frames written to {run_dir}; go on with: {again}")
@@ -238,6 +239,9 @@ def run(
             "last written frame, with its own settings and frames."
         ),
     ] = None,
+    flush_every: Annotated[
+        int, typer.Option(min=1, max=100, help="Frames between two writes of the poses.")
+    ] = 100,
     compilation_cache: Annotated[bool, typer.Option(help=CACHE_HELP)] = True,
 ) -> None:
     """Run LiDAR odometry on a KITTI sequence or a folder of scans (real or simulated), and
@@ -248,7 +252,7 @@ def run(
     if compilation_cache:
         use_compilation_cache()
     if resume is not None:
-        resume_run(data, sequence, resume, on_bad_scan,
+        resume_run(data, sequence, resume, on_bad_scan, flush_every,
                    {"--method": method, "--config": config, "--weights": weights,
                     "--features": features, "--start": start or None, "--frames": frames,
                     "--stride": None if stride == 1 else stride})  # fmt: skip
@@ -256,12 +260,11 @@ def run(
     settings = method_settings(config, method, weights)
     with run_folder(out) as run_dir:
         run_odometry(data, sequence, settings, run_dir, features, start=start, frames=frames,
-                     stride=stride, on_bad_scan=on_bad_scan)  # fmt: skip
+                     stride=stride, on_bad_scan=on_bad_scan, flush_every=flush_every)  # fmt: skip
 
 
-def resume_run(
-    data: Path, sequence: str | None, run_dir: Path, on_bad_scan: str, given: dict
-) -> None:
+def resume_run(data: Path, sequence: str | None, run_dir: Path, on_bad_scan: str,
+               flush_every: int, given: dict) -> None:  # fmt: skip
     """Continue the unfinished run in ``run_dir`` with the settings and frames it recorded;
     ``given``: the other options on the command line, which must be left out."""
     from gloam_jax.config import load_config
@@ -278,7 +281,8 @@ def resume_run(
     features = None if record["features_dir"] is None else Path(record["features_dir"])
     run_odometry(data, sequence, load_config(run_dir / "config.yaml"), run_dir, features,
                  start=record["start"], frames=record["count"], stride=record["stride"],
-                 on_bad_scan=on_bad_scan, resume=checkpoint)  # fmt: skip
+                 on_bad_scan=on_bad_scan, resume=checkpoint,
+                 flush_every=flush_every)  # fmt: skip
     mark_latest(run_dir)
 
 

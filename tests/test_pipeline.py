@@ -1,0 +1,238 @@
+"""Long recordings through `gloam run`: kills and resumes, bad scans, gaps, time and units."""
+
+import json
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from gloam_jax import io
+from gloam_jax.cli import app
+from gloam_jax.datasets import open_dataset
+from gloam_jax.errors import InputError
+from gloam_jax.odometry import OdometryConfig
+from gloam_jax.pipeline import run_dataset, select_frames
+
+runner = CliRunner()
+FLUSH = ["--flush-every", "4"]
+
+
+def _lidar_poses(run) -> np.ndarray:
+    (path,) = run.glob("*_poses_lidar_kitti.txt")
+    return io.read_kitti_poses(path)
+
+
+@pytest.fixture(scope="module")
+def reference(sim_sequence, tmp_path_factory):
+    """The uninterrupted run of the 40-frame drive."""
+    out = tmp_path_factory.mktemp("reference")
+    result = runner.invoke(app, ["run", str(sim_sequence), *FLUSH, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    assert not (out / "latest" / "checkpoint.npz").exists()  # a finished run needs none
+    return _lidar_poses(out / "latest")
+
+
+def _scans_folder(sim_sequence, folder, keep=None):
+    """The drive's scans, point times and ground truth as a folder of scans (``keep``: only
+    those frame indices, their file numbers kept)."""
+    seq = io.KittiSequence(sim_sequence, "00")
+    keep = range(len(seq)) if keep is None else keep
+    (folder / "timestamps").mkdir(parents=True)
+    for i in keep:
+        shutil.copy(seq.scan_path(i), folder)
+        np.save(folder / "timestamps" / f"{i:06d}.npy", seq.point_times(i))
+    io.write_kitti_poses(folder / "poses.txt", seq.gt_poses_lidar[list(keep)])
+    return seq
+
+
+@pytest.mark.parametrize("stop", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+def test_a_killed_run_resumes_with_the_same_poses(sim_sequence, reference, tmp_path, stop):
+    target = random.randint(5, 30)  # frames written before the kill
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "gloam_jax", "run", str(sim_sequence), *FLUSH,
+               "--out", str(out)]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    metrics = None
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and process.poll() is None:
+        runs = [p for p in out.glob("20*") if (p / "metrics.json").exists()]
+        if runs:
+            metrics = json.loads((runs[0] / "metrics.json").read_text())
+            if metrics["frames_done"] >= target:
+                break
+        time.sleep(0.05)
+    process.send_signal(stop)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == (-9 if stop == signal.SIGKILL else 143), err.decode()
+    (run,) = out.glob("20*")
+    metrics = json.loads((run / "metrics.json").read_text())
+    done = metrics["frames_done"]
+    written = _lidar_poses(run)
+    assert target <= done == len(written) < 40, f"killed at frame {target}"
+    # Every pose written is the uninterrupted run's.
+    np.testing.assert_allclose(written, reference[:done], atol=1e-9)
+    assert metrics["status"] == ("running" if stop == signal.SIGKILL else "interrupted")
+    result = runner.invoke(app, ["run", str(sim_sequence), "--resume", str(run), *FLUSH])
+    assert result.exit_code == 0, result.output
+    how = "killed after" if stop == signal.SIGKILL else "interrupted (SIGTERM) after"
+    assert f"resuming {run}: {how} {done} frames" in result.output.replace("\n", "")
+    resumed = _lidar_poses(run)
+    assert len(resumed) == 40
+    # The frames after the resume point, as the uninterrupted run has them (1e-6 m).
+    np.testing.assert_allclose(resumed[:, :3, 3], reference[:, :3, 3], atol=1e-6,
+                               err_msg=f"resumed after {done} frames")  # fmt: skip
+    final = json.loads((run / "metrics.json").read_text())
+    assert final["status"] == "finished" and final["num_frames"] == 40
+    assert not (run / "checkpoint.npz").exists() and (out / "latest").resolve() == run.resolve()
+    again = runner.invoke(app, ["run", str(sim_sequence), "--resume", str(run)])
+    assert again.exit_code == 2 and "this run finished: nothing to resume" in again.output
+
+
+def test_resume_takes_the_runs_own_settings(sim_sequence, tmp_path):
+    result = runner.invoke(
+        app, ["run", str(sim_sequence), "--resume", str(tmp_path), "--method", "gloam"]
+    )
+    assert result.exit_code == 2 and "leave out --method" in result.output
+    result = runner.invoke(app, ["run", str(sim_sequence), "--resume", str(tmp_path)])
+    assert result.exit_code == 2 and "holds no checkpoint.npz" in result.output
+
+
+def test_a_bad_scan_stops_the_run_or_is_skipped(sim_sequence, reference, tmp_path):
+    folder = tmp_path / "scans"
+    seq = _scans_folder(sim_sequence, folder)
+    # A damaged scan that passes the up-front checks (its size is right): garbage contents.
+    bad = folder / "000017.bin"
+    bad.write_bytes(np.random.default_rng(0).bytes(bad.stat().st_size))
+    out = tmp_path / "stop"
+    stopped = runner.invoke(app, ["run", str(folder), *FLUSH, "--out", str(out)])
+    assert stopped.exit_code == 2
+    assert "000017.bin: bad scan at frame 17" in stopped.output
+    assert "Traceback" not in stopped.output
+    (run,) = out.glob("20*")
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["status"] == "stopped" and metrics["frames_done"] == 17
+    np.testing.assert_allclose(_lidar_poses(run)[:, :3, 3], reference[:17, :3, 3], atol=1e-6)
+    # Going on past it: its pose is the motion prior, flagged; the rest stays on track.
+    resumed = runner.invoke(
+        app, ["run", str(folder), "--resume", str(run), "--on-bad-scan", "skip", *FLUSH]
+    )
+    assert resumed.exit_code == 0, resumed.output
+    assert "skipped (bad scans, motion prior kept): frame(s) 17" in resumed.output.replace("\n", "")
+    flags = json.loads((run / "frames.json").read_text())
+    assert flags[17]["error"].startswith("skipped: ") and "000017.bin" in flags[17]["error"]
+    assert [k for k, f in enumerate(flags) if f["error"]] == [17]
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["skipped_frames"] == [17]
+    poses = _lidar_poses(run)
+    predicted = poses[16] @ np.linalg.inv(poses[15]) @ poses[16]  # constant velocity
+    np.testing.assert_allclose(poses[17], predicted, atol=1e-6)
+    error = np.linalg.norm(poses[:, :3, 3] - seq.gt_poses_lidar[:, :3, 3], axis=1)
+    assert error.max() < 0.3, error
+    # A run with skip from the start gives the same poses.
+    skipped = run_dataset(open_dataset(folder), OdometryConfig(), tmp_path / "skip",
+                          select_frames(40), on_bad_scan="skip")  # fmt: skip
+    assert skipped["skipped_frames"] == [17]
+    np.testing.assert_allclose(_lidar_poses(tmp_path / "skip")[:, :3, 3], poses[:, :3, 3],
+                               atol=1e-6)  # fmt: skip
+
+
+def test_a_gap_in_the_scans_is_predicted_over_its_time(sim_sequence, tmp_path):
+    folder = tmp_path / "gap"
+    keep = [*range(12), *range(15, 24)]  # scans 12-14 dropped: 0.4 s between 11 and 15
+    seq = _scans_folder(sim_sequence, folder, keep)
+    dataset = open_dataset(folder)
+    np.testing.assert_allclose(np.diff(dataset.times)[11], 0.4)
+    assert "3 numbers missing" in dataset.defaults[-1]
+    result = run_dataset(dataset, OdometryConfig(), tmp_path / "run", select_frames(len(keep)))
+    assert result["frames_after_a_gap"] == [12]
+    error = np.linalg.norm(
+        _lidar_poses(tmp_path / "run")[:, :3, 3] - seq.gt_poses_lidar[keep, :3, 3], axis=1
+    )
+    assert error.max() < 0.3, error
+    # Taken as 10 Hz (the step of one frame), the prediction falls 3 frames short.
+    (folder / "times.txt").write_text("".join(f"{0.1 * k}\n" for k in range(len(keep))))
+    run_dataset(open_dataset(folder), OdometryConfig(), tmp_path / "10hz",
+                select_frames(len(keep)))  # fmt: skip
+    flat = np.linalg.norm(
+        _lidar_poses(tmp_path / "10hz")[:, :3, 3] - seq.gt_poses_lidar[keep, :3, 3], axis=1
+    )
+    assert flat[12:].max() > 3 * error[12:].max(), (flat, error)
+
+
+def test_times_that_go_back_or_repeat_are_one_line_naming_the_frame(sim_sequence, tmp_path):
+    folder = tmp_path / "scans"
+    _scans_folder(sim_sequence, folder, range(10))
+    for times, how in (([0, 0.1, 0.2, 0.3, 0.3], "repeats"), ([0, 0.1, 0.2, 0.3, 0.25],
+                                                                "goes back before")):  # fmt: skip
+        stamps = [*times, *(0.1 * np.arange(5, 10))]
+        (folder / "times.txt").write_text("".join(f"{t}\n" for t in stamps))
+        result = runner.invoke(app, ["run", str(folder), "--out", str(tmp_path / "out")])
+        assert result.exit_code == 2
+        line = result.output.strip().splitlines()[-1]
+        assert f"000004.bin: frame 4: its time {times[4]:.6f} s {how} frame 3's" in line
+        assert "Traceback" not in result.output and not (tmp_path / "out").exists()
+
+
+def test_a_scan_in_millimetres_is_one_line(sim_sequence, tmp_path):
+    folder = tmp_path / "mm"
+    _scans_folder(sim_sequence, folder, range(4))
+    for path in folder.glob("*.bin"):
+        scan = io.read_scan(path)
+        scan[:, :3] *= 1000
+        io.write_scan_bin(path, scan)
+    result = runner.invoke(app, ["run", str(folder), "--out", str(tmp_path / "out")])
+    assert result.exit_code == 2 and "Traceback" not in result.output
+    line = result.output.strip().splitlines()[-1]
+    assert "000000.bin: median range" in line and "looks like millimetres" in line
+
+
+def test_check_units():
+    from gloam_jax.preprocess import PreprocessConfig, check_units
+
+    rng = np.random.default_rng(0)
+    metres = rng.normal(0, 20, (1000, 4)).astype(np.float32)
+    check_units(metres, PreprocessConfig())
+    far = metres.copy()
+    far[:, :3] *= 60  # median about 1.6 km
+    with pytest.raises(InputError, match="x.bin: median range .* looks like millimetres"):
+        check_units(far, PreprocessConfig(), "x.bin")
+    beyond = metres.copy()
+    beyond[:995, :3] += 500  # 99.5 % beyond 100 m, median well under 1 km
+    with pytest.raises(InputError, match=r"99\.5 % of points beyond"):
+        check_units(beyond, PreprocessConfig(), "x.bin")
+    beyond[:985, :3] = metres[:985, :3]
+    check_units(beyond, PreprocessConfig())  # 1 % far returns: a normal scan
+
+
+def test_a_two_million_point_scan_runs_within_4_gb(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 2_000_000  # a 128-beam sensor's sweep: a street of ground, facades and poles
+    kind = rng.integers(0, 4, n)
+    x = np.where(kind == 3, rng.integers(-6, 6, n) * 10 + rng.normal(0, 0.1, n),
+                 rng.uniform(-60, 60, n))  # fmt: skip
+    y = np.select([kind == 0, kind == 1, kind == 2], [rng.uniform(-10, 10, n), -10.0, 10.0],
+                  rng.choice([-6.0, 6.0], n) + rng.normal(0, 0.1, n))  # fmt: skip
+    z = np.where(kind == 0, -1.8, rng.uniform(-1.8, 8, n))
+    scan = np.column_stack([x, y, z, rng.uniform(0, 1, n)]).astype(np.float32)
+    for k in range(3):
+        io.write_scan_bin(tmp_path / "scans" / f"{k:06d}.bin", scan - [0.5 * k, 0, 0, 0])
+    run = [sys.executable, "-m", "gloam_jax", "run", str(tmp_path / "scans"), "--out",
+           str(tmp_path / "out"), "--no-compilation-cache"]  # fmt: skip
+    # The peak of the run alone: a parent that only waits for it.
+    measure = (
+        "import resource, subprocess, sys; r = subprocess.run(sys.argv[1:]); "
+        "print(r.returncode, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)"
+    )
+    result = subprocess.run([sys.executable, "-c", measure, *run], capture_output=True,
+                            text=True, timeout=600)  # fmt: skip
+    code, peak_kib = map(int, result.stdout.split()[-2:])
+    assert code == 0, result.stdout + result.stderr
+    assert peak_kib * 1024 < 4 * 2**30, f"peak RSS {peak_kib / 2**20:.2f} GiB"
+    metrics = json.loads((tmp_path / "out" / "latest" / "metrics.json").read_text())
+    assert metrics["num_frames"] == 3 and not metrics["bad_input_frames"]
