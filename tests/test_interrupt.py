@@ -69,3 +69,18 @@ def test_an_interrupt_that_code_swallowed_is_raised_at_the_next_check_or_the_end
     raise_if_stopped()  # outside a block: nothing to raise
     with stop_on(signal.SIGTERM):
         raise_if_stopped()  # a new block starts clean
+
+
+def test_stop_between_holds_the_first_signal_until_the_job_asks_and_not_the_second():
+    from gloam_jax.interrupt import stop_between
+
+    before = signal.getsignal(signal.SIGTERM)
+    with stop_between(signal.SIGINT, signal.SIGTERM) as pending:
+        assert pending() is None
+        signal.raise_signal(signal.SIGTERM)
+        time.sleep(0.01)  # the step in progress goes on
+        assert pending() == signal.SIGTERM
+        with pytest.raises(KeyboardInterrupt):  # a second signal stops it at once
+            signal.raise_signal(signal.SIGINT)
+            time.sleep(0.01)
+    assert signal.getsignal(signal.SIGTERM) is before

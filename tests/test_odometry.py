@@ -347,3 +347,38 @@ def test_simulated_degenerate_scenes_are_flagged(kind):
         assert status.degenerate and status.condition < GICPConfig().degeneracy_threshold
         weak = np.asarray(status.weak_directions)
         assert np.linalg.norm(weak[:, 0]) > 0.9  # x, along the drive, lies in their span
+
+
+@pytest.mark.parametrize("mode", ["frame_to_model", "frame_to_frame"])
+def test_a_restored_state_registers_the_next_frames_exactly(sim_sequence, tmp_path, mode):
+    seq = io.KittiSequence(sim_sequence, "00")
+    config = OdometryConfig(mode=mode, warmup_frames=3)  # frozen sizes saved and restored
+    whole = Odometry(config)
+    for i in range(10):
+        whole.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+        if i == 5:
+            io.write_npz(tmp_path / "state.npz", **whole.state())
+    resumed = Odometry(config)
+    resumed.restore(dict(np.load(tmp_path / "state.npz", allow_pickle=False)))
+    assert resumed.resumable and len(resumed.poses) == 6
+    for i in range(6, 10):
+        resumed.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+    np.testing.assert_array_equal(np.stack(resumed.poses), np.stack(whole.poses))
+    assert json.dumps([dataclasses.asdict(s) for s in resumed.status]) == json.dumps(
+        [dataclasses.asdict(s) for s in whole.status]
+    )
+    fresh = Odometry(config)
+    fresh.register_frame(seq.scan(0), seq.point_times(0), 0.1)
+    with pytest.raises(ValueError, match="not final yet"):  # frames 0 and 1 wait for a redo
+        fresh.state()
+
+
+def test_the_prediction_scales_with_the_real_time_step():
+    odometry = Odometry(OdometryConfig())
+    odometry.poses = [np.eye(4)]
+    odometry.velocity, odometry.velocity_dt = np.array([0.8, 0, 0, 0, 0, 0.01]), 0.1
+    np.testing.assert_allclose(odometry._predict(0.1)[:3, 3], [0.8, 0.004, 0], atol=1e-3)
+    two_dropped = odometry._predict(0.3)  # three frame steps
+    np.testing.assert_allclose(two_dropped[:3, 3], [2.4, 0.036, 0], atol=1e-3)
+    with pytest.raises(InputError, match="x.bin: frame_dt must be a positive time step"):
+        odometry.register_frame(np.zeros((10, 4), np.float32), None, 0.0, source="x.bin")
