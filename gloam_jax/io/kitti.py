@@ -99,13 +99,14 @@ def read_times(path: PathLike) -> np.ndarray:
 def default_times(paths: list[Path], period: float = 0.1) -> tuple[np.ndarray, str]:
     """Scan times (N,) s for scans without a ``times.txt``, and the note saying so: each scan's
     file number (the digits its name ends with) times ``period``, from the first, so that a
-    missing file is a gap in time; ``period`` apart in file order where the names carry no
-    increasing numbers."""
+    missing file is a gap in time; ``period`` apart in file order where the names are not
+    frame numbers (not increasing, or mostly not one apart: clock times, say)."""
     numbers = [re.search(r"(\d+)$", p.stem) for p in paths]
     note = f"no times.txt: scans taken at {1 / period:g} Hz"
     if all(numbers):
         index = np.array([int(m.group(1)) for m in numbers])
-        if np.all(np.diff(index) > 0):
+        steps = np.diff(index)
+        if len(steps) and np.all(steps > 0) and np.median(steps) == 1:
             missing = int(index[-1] - index[0] + 1 - len(index))
             if missing:
                 note += f", by their file numbers ({missing} numbers missing: gaps in time)"
