@@ -15,9 +15,8 @@ the times) is predicted over its whole gap.
 
 from __future__ import annotations
 
-import json
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -285,8 +284,8 @@ class Odometry:
 
     def state(self) -> dict[str, np.ndarray]:
         """Everything the next frame depends on, as named arrays (for ``np.savez``): poses
-        (F, 4, 4), velocity, padded sizes, frame statuses and the local map's keyframes
-        (frame_to_model) or the previous scan (frame_to_frame), bit for bit. An
+        (F, 4, 4), velocity, padded sizes and the local map's keyframes (frame_to_model) or the
+        previous scan (frame_to_frame), bit for bit; not the frames' statuses, a report. An
         :class:`Odometry` of the same settings and model that :meth:`restore` s it registers the
         next frames exactly as this one would."""
         if not self.resumable:
@@ -299,7 +298,6 @@ class Odometry:
             "bucket_roles": np.array(list(floors), dtype=str),
             "bucket_sizes": np.array(list(floors.values()), dtype=np.int64),
             "buckets_frozen": np.bool_(frozen),
-            "status": np.array(json.dumps([asdict(s) for s in self.status])),
         }
         clouds = {f"keyframe{j}": k for j, k in enumerate(self.map.keyframes)}
         if self.previous is not None and self.config.mode == "frame_to_frame":
@@ -310,10 +308,13 @@ class Odometry:
             state |= {f"{name}_{c}": v for c, v in columns.items() if v is not None}
         return state
 
-    def restore(self, state: dict[str, np.ndarray]) -> None:
-        """Continue from a :meth:`state` (of a run with these settings and this model)."""
+    def restore(self, state: dict[str, np.ndarray], status: list[FrameStatus]) -> None:
+        """Continue from a :meth:`state` (of a run with these settings and this model), with
+        the statuses of its frames."""
         self.poses = list(np.asarray(state["poses"], np.float64))
-        self.status = [FrameStatus(**s) for s in json.loads(str(state["status"]))]
+        if len(status) != len(self.poses):
+            raise ValueError(f"{len(status)} statuses for {len(self.poses)} frames")
+        self.status = list(status)
         self.velocity = np.asarray(state["velocity"], np.float64)
         self.velocity_dt = float(state["velocity_dt"])
         roles, sizes = state["bucket_roles"].tolist(), state["bucket_sizes"].tolist()

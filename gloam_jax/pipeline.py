@@ -48,7 +48,7 @@ from gloam_jax.features import Backbone, get_backbone, intensity_warning
 from gloam_jax.guard import Choice, choose
 from gloam_jax.interrupt import interrupt_for, stop_between
 from gloam_jax.models import GLOAMModel
-from gloam_jax.odometry import Odometry, OdometryConfig
+from gloam_jax.odometry import FrameStatus, Odometry, OdometryConfig
 from gloam_jax.preprocess import ONE_INSTANT, check_units, detect_time_convention, resolve_deskew
 from gloam_jax.sensor import SENSOR_SCANS
 
@@ -167,9 +167,8 @@ def run_dataset(
     }  # fmt: skip
     if resume is not None:
         record = resume.continues(record)
-        odometry.restore(resume.state)
-    else:
-        dump_config(config, out / "config.yaml")
+        odometry.restore(resume.state, resume.status)
+    files = RunFiles(dataset, out, frames)
     frame_ms, feature_ms = record["frame_ms"], record["feature_ms"]
     extra = {"deskew": deskew, "defaults": list(dataset.defaults), "dataset": dataset.kind,
              "frames": {"start": frames.start, "stride": frames.step, "count": n},
@@ -178,8 +177,8 @@ def run_dataset(
              "frames_after_a_gap": time_gaps(times[np.asarray(frames)])}  # fmt: skip
 
     def save(status: dict) -> None:
-        if odometry.poses:
-            flush(dataset, odometry, config, out, frames, record, {**status, **extra})
+        if odometry.poses and odometry.resumable:  # else nothing final yet: frames 0 and 1
+            save_progress(files, odometry, config, record, {**status, **extra})
 
     with stop_between(signal.SIGINT, signal.SIGTERM) as pending:
         for k in range(len(odometry.poses), n):
@@ -225,7 +224,7 @@ def run_dataset(
                 save({"status": "running", "pid": os.getpid()})
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
-    result = write_run(dataset, odometry, config, out, frames, frame_ms, extra)
+    result = write_run(files, odometry, config, frame_ms, extra)
     (out / CHECKPOINT).unlink(missing_ok=True)
     return result
 
@@ -255,12 +254,13 @@ def time_gaps(stamps: np.ndarray) -> list[int]:
 @dataclass(frozen=True)
 class Checkpoint:
     """What a run folder holds to continue an unfinished run: its ``record`` (the data and
-    frames run, timings and flags so far), the odometry ``state`` (:meth:`Odometry.state`)
-    and how the run ``ended`` (a sentence)."""
+    frames run, timings and skips so far), the odometry ``state`` (:meth:`Odometry.state`),
+    the written frames' ``status`` (from frames.json) and how the run ``ended`` (a sentence)."""
 
     path: Path
     record: dict
     state: dict[str, np.ndarray]
+    status: list[FrameStatus]
     ended: str
 
     @classmethod
@@ -283,11 +283,13 @@ class Checkpoint:
         state = dict(np.load(path, allow_pickle=False))
         record = json.loads(str(state.pop("record")))
         done = record["frames_done"]
+        # frames.json is written before the checkpoint: it has these frames, maybe more
+        flags = json.loads((run_dir / "frames.json").read_text())[:done]
         ended = {
             "interrupted": f"interrupted ({metrics.get('signal')}) after {done} frames",
             "stopped": f"stopped after {done} frames by a bad scan: {metrics.get('error')}",
         }.get(status, f"killed after {done} frames written (no clean stop: SIGKILL or a crash)")
-        return cls(path, record, state, ended)
+        return cls(path, record, state, [FrameStatus(**f) for f in flags], ended)
 
     def continues(self, record: dict) -> dict:
         """This run's record, after checking that ``record`` (of the run to continue it) is
@@ -314,32 +316,55 @@ def _alive(pid: int | None) -> bool:
     return True
 
 
-def flush(dataset: Dataset, odometry: Odometry, config: OdometryConfig, out: Path,
-          frames: range, record: dict, metrics: dict) -> None:  # fmt: skip
-    """Write what is computed so far, each file atomically: the poses, ``frames.json``, the
+class RunFiles:
+    """The files of a run that grow frame by frame: the poses (KITTI, KITTI in the LiDAR frame,
+    TUM) and ``frames.json``, each written whole and atomically at every :meth:`write`. Each
+    frame is formatted once: an hour of scans (36000 frames) would otherwise take seconds a
+    flush."""
+
+    def __init__(self, dataset: Dataset, out: Path, frames: range) -> None:
+        name = dataset.name
+        self.dataset, self.out, self.frames, self.done = dataset, out, frames, 0
+        self.paths = {
+            "cam": out / f"{name}_poses_kitti.txt",
+            "lidar": out / f"{name}_poses_lidar_kitti.txt",
+            "tum": out / f"{name}_poses_tum.txt",
+            "flags": out / "frames.json",
+        }
+        self.text: dict[str, list[bytes]] = {key: [] for key in self.paths}
+
+    def write(self, odometry: Odometry) -> None:
+        """The files of ``odometry``'s frames so far; those of earlier writes must be final
+        (:attr:`Odometry.resumable`)."""
+        new = slice(self.done, len(odometry.poses))
+        if new.start < new.stop:
+            T_lidar = np.stack(odometry.poses[new])
+            T_cam = io.lidar_to_cam_poses(T_lidar, self.dataset.Tr_cam_velo)
+            self.text["cam"].append(io.kitti_pose_text(T_cam))
+            self.text["lidar"].append(io.kitti_pose_text(T_lidar))
+            stamps = self.dataset.times[np.asarray(self.frames[new])]
+            self.text["tum"].append(io.tum_pose_text(stamps, T_cam))
+            self.text["flags"] += [json.dumps(asdict(s)).encode() for s in odometry.status[new]]
+            self.done = new.stop
+        for key, path in self.paths.items():
+            chunks = self.text[key]
+            io.write_atomic(path, b"[" + b", ".join(chunks) + b"]" if key == "flags" else
+                            b"".join(chunks))  # fmt: skip
+
+
+def save_progress(files: RunFiles, odometry: Odometry, config: OdometryConfig, record: dict,
+                  metrics: dict) -> None:  # fmt: skip
+    """Write what is computed so far, each file atomically: the poses and ``frames.json``, the
     settings, the checkpoint and, last, ``metrics.json`` (``metrics``, with ``frames_done`` and
     the dataset index of the next scan)."""
-    done = len(odometry.poses)
-    write_poses(dataset, odometry.poses, out, np.asarray(frames[:done]))
-    io.write_atomic(out / "frames.json", json.dumps([asdict(s) for s in odometry.status]))
+    files.write(odometry)
+    out, done, frames = files.out, files.done, files.frames
     dump_config(config, out / "config.yaml")
-    if odometry.resumable:
-        record = {**record, "frames_done": done}
-        io.write_npz(out / CHECKPOINT, record=np.array(json.dumps(record)), **odometry.state())
-    metrics = {"sequence": dataset.name, "frames_done": done,
+    record = {**record, "frames_done": done}
+    io.write_npz(out / CHECKPOINT, record=np.array(json.dumps(record)), **odometry.state())
+    metrics = {"sequence": files.dataset.name, "frames_done": done,
                "next_scan": frames[done] if done < len(frames) else None, **metrics}  # fmt: skip
     io.write_atomic(out / "metrics.json", json.dumps(metrics, indent=2))
-
-
-def write_poses(dataset: Dataset, poses: list[np.ndarray], out: Path, index: np.ndarray) -> None:
-    """The estimate of the scans ``index`` (F,) (poses (F, 4, 4) in the LiDAR frame) as KITTI
-    (ground-truth frame and LiDAR frame) and TUM files."""
-    name = dataset.name
-    T_lidar = np.stack(poses)
-    T_cam = io.lidar_to_cam_poses(T_lidar, dataset.Tr_cam_velo)
-    io.write_kitti_poses(out / f"{name}_poses_kitti.txt", T_cam)
-    io.write_kitti_poses(out / f"{name}_poses_lidar_kitti.txt", T_lidar)
-    io.write_tum_poses(out / f"{name}_poses_tum.txt", dataset.times[index], T_cam)
 
 
 def choose_model(
@@ -368,13 +393,13 @@ def _backbone(odometry: Odometry, features_dir: str | Path | None) -> Backbone |
     return odometry.model.backbone()
 
 
-def write_run(dataset: Dataset, odometry: Odometry, config: OdometryConfig, out_dir: str | Path,
-              frames: range, frame_ms: list[float], extra: dict) -> dict:  # fmt: skip
-    """The finished run's files: poses, ground truth, metrics, plot, settings, flags."""
-    out = Path(out_dir)
+def write_run(files: RunFiles, odometry: Odometry, config: OdometryConfig,
+              frame_ms: list[float], extra: dict) -> dict:  # fmt: skip
+    """The finished run's files: poses and flags, ground truth, metrics, plot, settings."""
+    files.write(odometry)
+    dataset, out, frames = files.dataset, files.out, files.frames
     name, n = dataset.name, len(frames)
     index = np.asarray(frames)
-    write_poses(dataset, odometry.poses, out, index)
     T_cam = io.lidar_to_cam_poses(np.stack(odometry.poses), dataset.Tr_cam_velo)
     stamps = dataset.times[index]
     dump_config(config, out / "config.yaml")
@@ -409,6 +434,5 @@ def write_run(dataset: Dataset, odometry: Odometry, config: OdometryConfig, out_
             metrics.plot_trajectory(T_cam, gt, plot, f"{name}: RTE unavailable ({err.problem})")
     else:
         metrics.plot_trajectory(T_cam, None, plot, f"{name} (no ground truth)")
-    io.write_atomic(out / "frames.json", json.dumps(flags))
     io.write_atomic(out / "metrics.json", json.dumps(result, indent=2))
     return result

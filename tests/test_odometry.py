@@ -359,7 +359,7 @@ def test_a_restored_state_registers_the_next_frames_exactly(sim_sequence, tmp_pa
         if i == 5:
             io.write_npz(tmp_path / "state.npz", **whole.state())
     resumed = Odometry(config)
-    resumed.restore(dict(np.load(tmp_path / "state.npz", allow_pickle=False)))
+    resumed.restore(dict(np.load(tmp_path / "state.npz", allow_pickle=False)), whole.status[:6])
     assert resumed.resumable and len(resumed.poses) == 6
     for i in range(6, 10):
         resumed.register_frame(seq.scan(i), seq.point_times(i), 0.1)

@@ -39,9 +39,9 @@ def finished(process: subprocess.Popen, out: Path) -> tuple[dict, np.ndarray, fl
     return metrics, io.read_kitti_poses(run / "00_poses_lidar_kitti.txt"), time.monotonic() - start
 
 
-def killed_and_resumed(data: Path, out: Path, at: int) -> tuple[int, np.ndarray, dict]:
+def killed_and_resumed(data: Path, out: Path, at: int) -> tuple[int, int, np.ndarray, dict]:
     """A run killed once ``at`` frames are written, then resumed: frames written at the
-    kill, the final poses, the final metrics."""
+    kill, the checkpoint's size then (bytes), the final poses, the final metrics."""
     process = gloam_run(data, out)
     while process.poll() is None:
         runs = [p / "metrics.json" for p in out.glob("20*") if (p / "metrics.json").exists()]
@@ -52,11 +52,12 @@ def killed_and_resumed(data: Path, out: Path, at: int) -> tuple[int, np.ndarray,
     process.wait()
     (run,) = out.glob("20*")
     done = json.loads((run / "metrics.json").read_text())["frames_done"]
+    size = (run / "checkpoint.npz").stat().st_size
     resumed = subprocess.run([sys.executable, "-m", "gloam_jax", "run", str(data), "--resume",
                               str(run)], capture_output=True, text=True)  # fmt: skip
     assert resumed.returncode == 0, resumed.stderr
     metrics = json.loads((run / "metrics.json").read_text())
-    return done, io.read_kitti_poses(run / "00_poses_lidar_kitti.txt"), metrics
+    return done, size, io.read_kitti_poses(run / "00_poses_lidar_kitti.txt"), metrics
 
 
 def main() -> None:
@@ -98,9 +99,10 @@ def main() -> None:
             skipped["t_err_percent"] / clean["t_err_percent"] - 1
         )
         at = random.Random(args.seed).randint(100, args.frames - 100)
-        done, resumed, metrics = killed_and_resumed(tmp / "sim", tmp / "killed", at)
+        done, size, resumed, metrics = killed_and_resumed(tmp / "sim", tmp / "killed", at)
         after = np.linalg.norm(resumed[done:, :3, 3] - reference[done:, :3, 3], axis=1)
         report["kill"] = {"target_frame": at, "frames_written_at_kill": done,
+                          "checkpoint_mib": size / 2**20,
                           "max_translation_difference_after_m": float(after.max()),
                           "max_translation_difference_m": float(np.abs(
                               resumed[:, :3, 3] - reference[:, :3, 3]).max()),

@@ -18,9 +18,11 @@ from gloam_jax.io.kitti import (
 from gloam_jax.io.poses import (
     as_poses,
     cam_to_lidar_poses,
+    kitti_pose_text,
     lidar_to_cam_poses,
     read_kitti_poses,
     read_tum_poses,
+    tum_pose_text,
     write_kitti_poses,
     write_tum_poses,
 )
@@ -30,6 +32,7 @@ __all__ = [
     "KittiSequence",
     "as_poses",
     "cam_to_lidar_poses",
+    "kitti_pose_text",
     "lidar_to_cam_poses",
     "read_calib",
     "read_kitti_poses",
@@ -37,6 +40,7 @@ __all__ = [
     "read_scan",
     "read_times",
     "read_tum_poses",
+    "tum_pose_text",
     "write_atomic",
     "write_calib",
     "write_figure",

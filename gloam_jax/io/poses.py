@@ -25,10 +25,12 @@ from gloam_jax.io.files import PathLike, parse_rows, read_text, write_atomic
 __all__ = [
     "as_poses",
     "cam_to_lidar_poses",
+    "kitti_pose_text",
     "lidar_to_cam_poses",
     "read_kitti_poses",
     "read_tum_poses",
     "to_homogeneous",
+    "tum_pose_text",
     "write_kitti_poses",
     "write_tum_poses",
 ]
@@ -122,10 +124,15 @@ def read_kitti_poses(path_or_file: PathLike | IO[str]) -> np.ndarray:
     return to_homogeneous(rows.reshape(-1, 3, 4))
 
 
+def kitti_pose_text(poses: np.ndarray, source: PathLike | None = None) -> bytes:
+    """The lines of a KITTI pose file for ``(N, 4, 4)`` poses (``source`` names it in errors)."""
+    top = as_poses(poses, source=source, top_rows_ok=True)[:, :3, :]
+    return _format_rows(top.reshape(-1, 12), _FLOAT_FMT)
+
+
 def write_kitti_poses(path: PathLike, poses: np.ndarray) -> None:
     """Write ``(N, 4, 4)`` poses as a KITTI pose file (readable by ``evo_traj kitti``)."""
-    top = as_poses(poses, source=path, top_rows_ok=True)[:, :3, :]
-    write_atomic(path, _format_rows(top.reshape(-1, 12), _FLOAT_FMT))
+    write_atomic(path, kitti_pose_text(poses, path))
 
 
 def read_tum_poses(path_or_file: PathLike | IO[str]) -> tuple[np.ndarray, np.ndarray]:
@@ -147,17 +154,24 @@ def read_tum_poses(path_or_file: PathLike | IO[str]) -> tuple[np.ndarray, np.nda
     return rows[:, 0].copy(), poses
 
 
-def write_tum_poses(path: PathLike, times: np.ndarray, poses: np.ndarray) -> None:
-    """Write ``times (N,)`` and ``poses (N, 4, 4)`` as a TUM trajectory file."""
-    top = as_poses(poses, source=path, top_rows_ok=True)[:, :3, :]
+def tum_pose_text(
+    times: np.ndarray, poses: np.ndarray, source: PathLike | None = None
+) -> bytes:
+    """The lines of a TUM trajectory file for ``times (N,)`` and ``poses (N, 4, 4)``."""
+    top = as_poses(poses, source=source, top_rows_ok=True)[:, :3, :]
     times = np.asarray(times, dtype=np.float64)
     if times.shape != (len(top),):
-        raise InputError(path, f"times must have shape ({len(top)},), got {times.shape}")
+        raise InputError(source, f"times must have shape ({len(top)},), got {times.shape}")
     if not np.all(np.isfinite(times)):
-        raise InputError(path, "times contain NaN or infinite values")
+        raise InputError(source, "times contain NaN or infinite values")
     quats = Rotation.from_matrix(top[:, :, :3]).as_quat(canonical=True)
     rows = np.column_stack([times, top[:, :, 3], quats])
-    write_atomic(path, _format_rows(rows, " ".join([_FLOAT_FMT] * 8)))
+    return _format_rows(rows, " ".join([_FLOAT_FMT] * 8))
+
+
+def write_tum_poses(path: PathLike, times: np.ndarray, poses: np.ndarray) -> None:
+    """Write ``times (N,)`` and ``poses (N, 4, 4)`` as a TUM trajectory file."""
+    write_atomic(path, tum_pose_text(times, poses, path))
 
 
 def cam_to_lidar_poses(P_cam: np.ndarray, Tr_cam_velo: np.ndarray) -> np.ndarray:
