@@ -187,10 +187,15 @@ def run_dataset(
             frame_dt = (
                 float(times[i] - times[frames[k - 1]]) if k else config.preprocess.sweep_duration
             )
-            try:
+            try:  # the scan, and its features where the method needs them
                 scan, point_times = dataset.frame(i)
                 if k:  # frame 0 was checked before the run
                     check_units(scan, config.preprocess, path)
+                features = None
+                if backbone is not None:
+                    t0 = time.perf_counter()
+                    features = backbone(scan, path=path, frame=i)
+                    feature_ms.append(1e3 * (time.perf_counter() - t0))
             except InputError as err:
                 if on_bad_scan == "stop":
                     save({"status": "stopped", "error": str(err)})
@@ -206,11 +211,6 @@ def run_dataset(
                     record["warnings"] += [] if warning is None else [warning]
                 if deskew["used"] != "timestamps":
                     point_times = None
-                features = None
-                if backbone is not None:
-                    t0 = time.perf_counter()
-                    features = backbone(scan, path=path, frame=i)
-                    feature_ms.append(1e3 * (time.perf_counter() - t0))
                 t0 = time.perf_counter()
                 odometry.register_frame(scan, point_times, frame_dt, source=str(path),
                                         features=features)  # fmt: skip

@@ -51,7 +51,9 @@ def _scans_folder(sim_sequence, folder, keep=None):
     return seq
 
 
-@pytest.mark.parametrize("stop", [signal.SIGKILL, signal.SIGTERM], ids=["SIGKILL", "SIGTERM"])
+@pytest.mark.parametrize(
+    "stop", [signal.SIGKILL, signal.SIGTERM, signal.SIGINT], ids=["SIGKILL", "SIGTERM", "SIGINT"]
+)
 def test_a_killed_run_resumes_with_the_same_poses(sim_sequence, reference, tmp_path, stop):
     target = random.randint(5, 30)  # frames written before the kill
     out = tmp_path / "out"
@@ -69,7 +71,8 @@ def test_a_killed_run_resumes_with_the_same_poses(sim_sequence, reference, tmp_p
         time.sleep(0.05)
     process.send_signal(stop)
     _, err = process.communicate(timeout=120)
-    assert process.returncode == (-9 if stop == signal.SIGKILL else 143), err.decode()
+    codes = {signal.SIGKILL: -9, signal.SIGTERM: 143, signal.SIGINT: 130}
+    assert process.returncode == codes[stop], err.decode()
     (run,) = out.glob("20*")
     metrics = json.loads((run / "metrics.json").read_text())
     done = metrics["frames_done"]
@@ -80,7 +83,7 @@ def test_a_killed_run_resumes_with_the_same_poses(sim_sequence, reference, tmp_p
     assert metrics["status"] == ("running" if stop == signal.SIGKILL else "interrupted")
     result = runner.invoke(app, ["run", str(sim_sequence), "--resume", str(run), *FLUSH])
     assert result.exit_code == 0, result.output
-    how = "killed after" if stop == signal.SIGKILL else "interrupted (SIGTERM) after"
+    how = "killed after" if stop == signal.SIGKILL else f"interrupted ({stop.name}) after"
     assert f"resuming {run}: {how} {done} frames" in result.output.replace("\n", "")
     resumed = _lidar_poses(run)
     assert len(resumed) == 40

@@ -19,7 +19,7 @@ from gloam_jax import io
 from gloam_jax.datasets import open_dataset
 from gloam_jax.odometry import OdometryConfig
 from gloam_jax.pipeline import run_dataset, select_frames
-from gloam_jax.simulate import procedural_trajectory, simulate
+from gloam_jax.simulate import ErrorSwitches, procedural_trajectory, simulate
 from gloam_jax.simulate.trajectory import default_Tr_cam_velo, interpolate_poses
 
 DT = 0.1  # s between scans
@@ -65,18 +65,34 @@ def stop_drift(est: np.ndarray, gt: np.ndarray, first: int, last: int) -> tuple[
     return float(np.linalg.norm(relative[:3, 3])), float(angle)
 
 
+def keyframes(est: np.ndarray, config: OdometryConfig) -> list[int]:
+    """The frames that the odometry's keyframe rule (distance or angle from the last keyframe)
+    takes into the map, given the estimated poses (F, 4, 4)."""
+    chosen = [0]
+    for k in range(1, len(est)):
+        delta = np.linalg.inv(est[chosen[-1]]) @ est[k]
+        angle = np.rad2deg(np.linalg.norm(np.asarray(geo.so3_log(delta[:3, :3]))))
+        if np.linalg.norm(delta[:3, 3]) > config.keyframe_distance or (
+            angle > config.keyframe_angle_deg
+        ):
+            chosen.append(k)
+    return chosen
+
+
 def simulate_stop(out: Path, stop: float, *, beams: int, columns: int, seed: int = 0,
-                  before: float = 4.0, after: float = 4.0,
-                  decel: float = 2.0) -> tuple[Path, int, int]:  # fmt: skip
+                  before: float = 4.0, after: float = 4.0, decel: float = 2.0,
+                  movers: bool = True) -> tuple[Path, int, int]:  # fmt: skip
     """A stop-and-go drive simulated into ``out`` (KITTI layout, sequence 00, urban style, its
-    moving road users on); returns the root and the first and last standing frame."""
+    moving road users on unless ``movers`` is False); returns the root and the first and last
+    standing frame."""
     poses, first_still, last_still = stop_and_go(before, stop, after, seed=seed, decel=decel)
     margin = int(round(150.0 / 8.0 / DT))
     pose_file = out / "stop_poses.txt"
     io.write_kitti_poses(pose_file, io.lidar_to_cam_poses(poses, default_Tr_cam_velo()))
     frames = len(poses) - 2 * margin
     simulate(out / "sim", trajectory=pose_file, start=margin, frames=frames, style="urban",
-             seed=seed, num_beams=beams, num_columns=columns)  # fmt: skip
+             seed=seed, num_beams=beams, num_columns=columns,
+             switches=ErrorSwitches(moving_objects=movers))  # fmt: skip
     return out / "sim", first_still - margin, last_still - margin
 
 
@@ -86,11 +102,13 @@ def main() -> None:
     parser.add_argument("--beams", type=int, default=32)
     parser.add_argument("--columns", type=int, default=1000)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--no-movers", action="store_true", help="no moving road users")
     parser.add_argument("--out", type=Path, required=True, help="results (JSON)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root, first, last = simulate_stop(Path(tmp), args.stop, beams=args.beams,
-                                          columns=args.columns, seed=args.seed)  # fmt: skip
+                                          columns=args.columns, seed=args.seed,
+                                          movers=not args.no_movers)  # fmt: skip
         dataset = open_dataset(root, "00")
         result = run_dataset(dataset, OdometryConfig(), Path(tmp) / "run",
                              select_frames(len(dataset)))  # fmt: skip
@@ -98,10 +116,16 @@ def main() -> None:
         gt = dataset.sequence.gt_poses_lidar
         metres, degrees = stop_drift(est, gt, first, last)
         wander = max(stop_drift(est, gt, first, k)[0] for k in range(first, last + 1))
+        labels = [dataset.labels(k) for k in range(first, last + 1)]
+        moving = [int(np.isin(k, [252, 253, 254]).sum()) for k in labels]
+        in_stop = [k for k in keyframes(est, OdometryConfig()) if first < k <= last]
         frames = json.loads((Path(tmp) / "run" / "frames.json").read_text())
     report = {"args": {k: str(v) for k, v in vars(args).items()}, "stop_frames": [first, last],
               "stop_drift_m": metres, "stop_drift_deg": degrees, "max_wander_in_stop_m": wander,
               "ate": result["ate"], "t_err_percent": result.get("t_err_percent"),
+              "keyframes_in_stop": in_stop, "moving_points_per_scan_in_stop": {
+                  "mean": float(np.mean(moving)), "max": max(moving),
+                  "share_of_scans_with_movers": float(np.mean(np.array(moving) > 0))},
               "degenerate_frames": result["degenerate_frames"],
               "residual_during_stop": [f["residual"] for f in frames[first:last + 1]][::50],
               "config": asdict(OdometryConfig())}  # fmt: skip
