@@ -268,8 +268,7 @@ class Checkpoint:
         """The checkpoint of ``run_dir``; InputError when there is none to continue from
         (finished, still running, stopped before its first flush)."""
         run_dir = Path(run_dir)
-        path, metrics_path = run_dir / CHECKPOINT, run_dir / "metrics.json"
-        metrics = json.loads(metrics_path.read_text()) if metrics_path.exists() else {}
+        path, metrics = run_dir / CHECKPOINT, _metrics(run_dir)
         status = metrics.get("status")
         if status == "finished":
             raise InputError(run_dir, "this run finished: nothing to resume")
@@ -285,10 +284,7 @@ class Checkpoint:
         done = record["frames_done"]
         # frames.json is written before the checkpoint: it has these frames, maybe more
         flags = json.loads((run_dir / "frames.json").read_text())[:done]
-        ended = {
-            "interrupted": f"interrupted ({metrics.get('signal')}) after {done} frames",
-            "stopped": f"stopped after {done} frames by a bad scan: {metrics.get('error')}",
-        }.get(status, f"killed after {done} frames written (no clean stop: SIGKILL or a crash)")
+        ended = how_it_ended({**metrics, "frames_done": done})
         return cls(path, record, state, [FrameStatus(**f) for f in flags], ended)
 
     def continues(self, record: dict) -> dict:
@@ -301,6 +297,34 @@ class Checkpoint:
                     self.path, f"is a run with {key} {self.record[key]!r}, not {record[key]!r}"
                 )
         return dict(self.record)
+
+
+def _metrics(run_dir: Path) -> dict:
+    path = run_dir / "metrics.json"
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
+def how_it_ended(metrics: dict) -> str:
+    """How an unfinished run ended, from its metrics.json (a dict), as a sentence."""
+    done, status = metrics.get("frames_done"), metrics.get("status")
+    return {
+        "interrupted": f"interrupted ({metrics.get('signal')}) after {done} frames",
+        "stopped": f"stopped after {done} frames by a bad scan: {metrics.get('error')}",
+    }.get(status, f"killed after {done} frames written (no clean stop: SIGKILL or a crash)")
+
+
+def unfinished_runs(out: Path) -> dict[Path, str]:
+    """The runs under ``out`` that stopped before their end and can resume (their process
+    gone), with how each ended."""
+    found = {}
+    runs = out.iterdir() if out.is_dir() else []
+    for run in sorted(p for p in runs if p.is_dir() and not p.is_symlink()):
+        metrics = _metrics(run)
+        status = metrics.get("status")
+        if (run / CHECKPOINT).exists() and status in ("running", "interrupted", "stopped"):
+            if not (status == "running" and _alive(metrics.get("pid"))):
+                found[run] = how_it_ended(metrics)
+    return found
 
 
 def _alive(pid: int | None) -> bool:

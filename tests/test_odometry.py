@@ -389,7 +389,7 @@ def test_standing_still_among_traffic_adds_little_drift(tmp_path):
     measured in experiments/standstill): under 5 cm and 0.1 deg over the stop."""
     from repo_scripts import import_script
 
-    probe = import_script("standstill", "standstill")
+    probe = import_script("probe_standstill", "standstill")
     root, first, last = probe.simulate_stop(tmp_path, 10.0, beams=16, columns=500, before=2.0,
                                             after=1.0, decel=4.0)  # fmt: skip
     seq = io.KittiSequence(root, "00")

@@ -17,7 +17,7 @@ from gloam_jax.cli import app
 from gloam_jax.datasets import open_dataset
 from gloam_jax.errors import InputError
 from gloam_jax.odometry import OdometryConfig
-from gloam_jax.pipeline import run_dataset, select_frames
+from gloam_jax.pipeline import run_dataset, select_frames, unfinished_runs
 
 runner = CliRunner()
 FLUSH = ["--flush-every", "4"]
@@ -81,9 +81,12 @@ def test_a_killed_run_resumes_with_the_same_poses(sim_sequence, reference, tmp_p
     # Every pose written is the uninterrupted run's.
     np.testing.assert_allclose(written, reference[:done], atol=1e-9)
     assert metrics["status"] == ("running" if stop == signal.SIGKILL else "interrupted")
+    how = "killed after" if stop == signal.SIGKILL else f"interrupted ({stop.name}) after"
+    # The next `gloam run` into the same folder says so.
+    ((found, ended),) = unfinished_runs(out).items()
+    assert found == run and ended.startswith(f"{how} {done} frames")
     result = runner.invoke(app, ["run", str(sim_sequence), "--resume", str(run), *FLUSH])
     assert result.exit_code == 0, result.output
-    how = "killed after" if stop == signal.SIGKILL else f"interrupted ({stop.name}) after"
     assert f"resuming {run}: {how} {done} frames" in result.output.replace("\n", "")
     resumed = _lidar_poses(run)
     assert len(resumed) == 40

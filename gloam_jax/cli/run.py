@@ -258,6 +258,10 @@ def run(
                     "--stride": None if stride == 1 else stride})  # fmt: skip
         return
     settings = method_settings(config, method, weights)
+    from gloam_jax.pipeline import unfinished_runs
+
+    for unfinished, ended in unfinished_runs(out).items():
+        console.print(f"note: {unfinished} was {ended}; --resume {unfinished} continues it")
     with run_folder(out) as run_dir:
         run_odometry(data, sequence, settings, run_dir, features, start=start, frames=frames,
                      stride=stride, on_bad_scan=on_bad_scan, flush_every=flush_every)  # fmt: skip

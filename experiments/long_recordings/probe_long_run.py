@@ -1,7 +1,7 @@
 """A long simulated drive through `gloam run`: the cost of skipping damaged scans, and a run
 killed (SIGKILL) at a random frame then resumed, against the uninterrupted run.
 
-    python experiments/long_recordings/long_run.py --frames 1000 --out RESULTS.json
+    python experiments/long_recordings/probe_long_run.py --frames 1000 --out RESULTS.json
 """
 
 from __future__ import annotations
