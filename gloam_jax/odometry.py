@@ -260,7 +260,7 @@ class Odometry:
         ``features`` (N, D): the backbone's, for the learned methods.
         Returns ``T_world_lidar`` (4, 4). Bad scans fall back on the motion prior; so does
         ``scan`` None, a scan that could not be read (``source`` then says why)."""
-        if not (is_positive(frame_dt)):
+        if not is_positive(frame_dt):
             raise InputError(source, f"frame_dt must be a positive time step (s), not {frame_dt!r}")
         # A frame's NumPy products are thin ((N, 3) @ (3, 3), (N, D) @ (D, 6)): threaded BLAS
         # only fights XLA's and the k-d tree's threads for the cores.
@@ -288,8 +288,8 @@ class Odometry:
         previous scan (frame_to_frame), bit for bit; not the frames' statuses, a report. An
         :class:`Odometry` of the same settings and model that :meth:`restore` s it registers the
         next frames exactly as this one would."""
-        if not self.resumable:
-            raise ValueError("the first frames are not final yet (see resumable)")
+        if not self.poses or not self.resumable:
+            raise ValueError("no frames, or the first frames are not final yet (see resumable)")
         floors, frozen = self.buckets.state()
         state = {
             "poses": np.stack(self.poses),

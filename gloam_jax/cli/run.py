@@ -196,7 +196,8 @@ def method_settings(config: Path | None, method: str | None, weights: Path | Non
         "  gloam run ../shared/data/real_kitti16   (any folder of .bin/.pcd/.ply/.npy scans)\n\n"
         "  gloam run /data/kitti --sequence 07 --method gloam --start 100 --frames 500 "
         "--stride 2 --out results/gloam\n\n"
-        "  gloam run data/sim --sequence 00 --method gloam --weights model.npz"
+        "  gloam run data/sim --sequence 00 --method gloam --weights model.npz\n\n"
+        "  gloam run /data/drive --resume results/2026-01-01_12-00-00 --on-bad-scan skip"
     )
 )
 @user_errors
