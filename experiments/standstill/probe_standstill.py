@@ -1,7 +1,7 @@
 """A drive that stops among traffic (the simulator's moving road users), and the drift the stop
 adds to the odometry: cruise, brake, stand still, pull away, cruise on.
 
-    python experiments/standstill/probe_standstill.py --stop 60 --out experiments/standstill/stop60.json
+    python experiments/standstill/probe_standstill.py --stop 60 --out RESULTS.json
 """
 
 from __future__ import annotations

@@ -154,9 +154,7 @@ def read_tum_poses(path_or_file: PathLike | IO[str]) -> tuple[np.ndarray, np.nda
     return rows[:, 0].copy(), poses
 
 
-def tum_pose_text(
-    times: np.ndarray, poses: np.ndarray, source: PathLike | None = None
-) -> bytes:
+def tum_pose_text(times: np.ndarray, poses: np.ndarray, source: PathLike | None = None) -> bytes:
     """The lines of a TUM trajectory file for ``times (N,)`` and ``poses (N, 4, 4)``."""
     top = as_poses(poses, source=source, top_rows_ok=True)[:, :3, :]
     times = np.asarray(times, dtype=np.float64)
