@@ -12,6 +12,8 @@ folder's name)::
     NN_gt_tum.txt             the same with the frame times (evo_ape tum)
     metrics.json              KITTI RTE and ATE (when ground truth exists), timing, frame
                               flags, the deskew policy and time convention, the defaults taken,
+                              what the loader found (dataset_details: a recording's topic,
+                              message count and point fields),
                               the model run and why (model_choice: the scans' sensor, the
                               guard's decision)
     trajectory.png            the trajectory (against the ground truth, with the error per
@@ -152,6 +154,7 @@ def run_dataset(
         if progress is not None:
             progress(k, frame_ms[-1])
     extra = {"deskew": deskew, "defaults": list(dataset.defaults), "dataset": dataset.kind,
+             "dataset_details": dict(dataset.details),
              "frames": {"start": frames.start, "stride": frames.step, "count": n},
              "model_choice": choice.record, "warnings": warnings}  # fmt: skip
     if feature_ms:

@@ -23,6 +23,7 @@ __all__ = [
     "check_scan",
     "has_time_field",
     "read_scan",
+    "scan_from_columns",
     "read_scan_with_times",
     "write_scan_bin",
     "write_scan_pcd",
@@ -32,9 +33,9 @@ SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".npy")
 
 # Field names taken as intensity, in order of preference (PCL, PLY exporters, SemanticKITTI).
 _INTENSITY_NAMES = ("intensity", "i", "reflectance", "remission", "scalar_intensity")
-# Field names taken as per-point time (Ouster "t" in ns, Velodyne "time", Hesai "timestamp",
-# Livox "offset_time").
-_TIME_NAMES = ("t", "time", "timestamp", "time_offset", "offset_time", "timestamps")
+# Field names taken as per-point time, in order of preference (Ouster "t" in ns, Velodyne "time"
+# in s, Hesai and Robosense "timestamp" in absolute s, Livox "offset_time" in ns).
+TIME_NAMES = ("t", "time", "timestamp", "time_offset", "offset_time", "timestamps")
 
 
 def read_scan(path: PathLike) -> np.ndarray:
@@ -61,11 +62,19 @@ def read_scan_with_times(path: PathLike) -> tuple[np.ndarray, np.ndarray | None]
         raise InputError(
             path, f"unsupported scan format '{suffix}' (expected .bin, .pcd, .ply or .npy)"
         )
-    columns = readers[suffix](path)
-    points = _assemble(path, columns)
+    return scan_from_columns(readers[suffix](path), path)
+
+
+def scan_from_columns(
+    columns: dict[str, np.ndarray], source: PathLike | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Named 1-D point columns (any file's or message's fields, names lower case) -> the scan
+    ``(N, 4)`` float32 ``[x, y, z, intensity]`` and its per-point times ``(N,)`` as stored
+    (int64 for integer fields, else float64), or None without a time field."""
+    points = _assemble(source, columns)
     if len(points) == 0:
-        raise InputError(path, "empty scan (no points)")
-    times = next((columns[k] for k in _TIME_NAMES if k in columns), None)
+        raise InputError(source, "empty scan (no points)")
+    times = next((columns[k] for k in TIME_NAMES if k in columns), None)
     if times is not None:
         times = times.astype(np.int64 if times.dtype.kind in "iu" else np.float64)
     return points, times
@@ -134,7 +143,7 @@ def has_time_field(path: PathLike) -> bool:
             path, head if b"end_header" in head else read_bytes(path), "end_header"
         )
         names = [w[-1].lower() for w in lines if w[0] == "property"]
-    return any(name in _TIME_NAMES for name in names)
+    return any(name in TIME_NAMES for name in names)
 
 
 def load_npy_header(path: PathLike, head: bytes) -> None:
@@ -176,7 +185,7 @@ def _read_bin(path: PathLike) -> np.ndarray:
     return dict(zip(("x", "y", "z", "intensity"), table.T, strict=True))
 
 
-def _assemble(path: PathLike, columns: dict[str, np.ndarray]) -> np.ndarray:
+def _assemble(path: PathLike | None, columns: dict[str, np.ndarray]) -> np.ndarray:
     """Pick x, y, z and intensity out of named 1-D columns -> ``(n, 4)`` float32."""
     missing = [c for c in "xyz" if c not in columns]
     if missing:
