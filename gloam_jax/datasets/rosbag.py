@@ -21,6 +21,7 @@ precomputed feature file for it is named ``NNNNNN``.
 from __future__ import annotations
 
 import contextlib
+import weakref
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -147,6 +148,13 @@ def choose_topic(reader, topic: str | None, path: Path) -> str:
     return clouds[0]
 
 
+def read_messages(path: Path, topic: str, start: int) -> Iterator[tuple[int, object]]:
+    """:func:`topic_messages` of the recording at ``path``, which stays open until the last
+    message is read or the generator is closed."""
+    with open_recording(path) as reader:
+        yield from topic_messages(reader, topic, start)
+
+
 def topic_messages(reader, topic: str, start: int = 0) -> Iterator[tuple[int, object]]:
     """Messages ``start, start + 1, ...`` of ``topic``, decoded, with their index (the ones
     before ``start`` are read but not decoded)."""
@@ -210,23 +218,25 @@ class RosbagDataset(Dataset):
             "point fields": describe_fields(first),
             "per-point time field": self._time_field or "none",
         }
-        self._stream: Iterator | None = None
+        self._stream: Iterator = iter(())
+        self._closer: weakref.finalize | None = None
         self._next = 0
 
     def _message(self, i: int):
         """Message ``i``: read on from the last one asked for, or again from the start (the
         pipeline reads a few first scans, then all in order)."""
-        if self._stream is None or self._next > i:
-            self._stream, self._next = self._read_from(i), i
+        if self._next > i or self._closer is None:
+            if self._closer is not None:
+                self._closer()  # closes the last reader now, not when collected
+            stream = read_messages(self.path, self.topic, i)
+            # The open reader closes with the dataset, or at exit while Python still can.
+            self._stream, self._next = stream, i
+            self._closer = weakref.finalize(self, stream.close)
         for k, msg in self._stream:
             self._next = k + 1
             if k == i:
                 return msg
         raise InputError(self.scan_path(i), "message missing (the recording changed?)")
-
-    def _read_from(self, start: int) -> Iterator[tuple[int, object]]:
-        with open_recording(self.path) as reader:
-            yield from topic_messages(reader, self.topic, start)
 
     def __len__(self) -> int:
         return len(self._times)
