@@ -266,6 +266,13 @@ def test_the_topic_is_chosen_by_itself_or_by_name(drive, tmp_path):
         open_dataset(bag, topic="/top")
     with pytest.raises(InputError, match="--topic does not apply to kitti data"):
         open_dataset(drive.root, "00", topic="/points")
+    # gloam segment takes recordings as gloam run does: message 1 of /rear labelled.
+    out = tmp_path / "segment"
+    args = ["segment", str(bag), "--topic", "/rear", "--start", "1", "--frames", "1"]
+    result = runner.invoke(app, [*args, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    labels = io.read_labels(out / "labels" / "000001.label")
+    assert labels.shape == (len(drive.frames[1][0]),)
 
 
 def run_one_line(path, *args) -> str:
