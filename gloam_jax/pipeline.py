@@ -1,8 +1,8 @@
 """Dataset -> odometry -> metrics -> result files, for one sequence of scans.
 
 The data comes from any registered loader (:mod:`gloam_jax.datasets`: the KITTI layout, a
-folder of scans). A run folder holds (``NN`` the dataset's name: the KITTI sequence id or the
-folder's name)::
+folder of scans, a ROS bag or MCAP recording). A run folder holds (``NN`` the dataset's name:
+the KITTI sequence id, the folder's or the recording's name)::
 
     NN_poses_kitti.txt        estimate, ground-truth convention (camera 0 with a calibration,
                               else the LiDAR frame); compare with the ground truth

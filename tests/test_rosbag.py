@@ -253,6 +253,12 @@ def test_any_field_order_type_byte_order_and_padding_decodes():
     expected = np.c_[flat["x"], flat["y"], flat["z"], flat["intensity"]].astype(np.float32)
     np.testing.assert_array_equal(scan, expected)
     np.testing.assert_array_equal(times, flat["timestamp"])
+    msg.fields[0].datatype = 9
+    with pytest.raises(InputError, match="cloud: field 'z' has unknown datatype 9"):
+        decode_cloud(msg, "cloud")
+    msg.fields[0].datatype, msg.fields[0].offset = FLOAT64, 36
+    with pytest.raises(InputError, match=r"field 'z' \(offset 36, 1 x >f8\) runs past the point"):
+        decode_cloud(msg, "cloud")
 
 
 def test_the_topic_is_chosen_by_itself_or_by_name(drive, tmp_path):
@@ -284,6 +290,19 @@ def run_one_line(path, *args) -> str:
     return result.output
 
 
+def blank_messages(count: int, fields=None, size=None, stamp=None) -> list:
+    """``count`` messages of 4 zero points (32 bytes each) in Velodyne's layout, for both ROS
+    versions; ``fields``, ``size`` (data bytes) and ``stamp`` (stamp index) of message ``k``
+    as given."""
+    fields = fields or (lambda k: DRIVERS["velodyne"]["fields"])
+    size, stamp = size or (lambda k: 32 * 4), stamp or (lambda k: k)
+    return [
+        (CLOUD, *(point_cloud(store, stamp(k), bytes(size(k)), fields(k), 32, 4)
+                  for store in (ROS1, ROS2)))
+        for k in range(count)
+    ]  # fmt: skip
+
+
 def test_bad_recordings_are_one_line(drive, tmp_path):
     types = ROS2.types
     text = [("std_msgs/msg/String", types["std_msgs/msg/String"](data="hello"),
@@ -295,9 +314,7 @@ def test_bad_recordings_are_one_line(drive, tmp_path):
     two = write_recording(tmp_path / "two", "sqlite3", {"/a": clouds, "/b": clouds})
     assert "2 PointCloud2 topics (/a, /b): choose one with --topic" in run_one_line(two)
     # No x/y/z: the fields renamed, as an unknown driver might write them.
-    renamed = [(CLOUD, *(point_cloud(store, k, bytes(32 * 4), [("u", FLOAT32, 0),
-                ("v", FLOAT32, 4), ("w", FLOAT32, 8)], 32, 4) for store in (ROS1, ROS2)))
-               for k in range(3)]  # fmt: skip
+    renamed = blank_messages(3, lambda k: [("u", FLOAT32, 0), ("v", FLOAT32, 4), ("w", FLOAT32, 8)])
     layout = write_recording(tmp_path / "layout.bag", "ros1", {"/points": renamed})
     assert "layout.bag/000000: no x, y, z field (fields: u, v, w)" in run_one_line(layout)
     full = write_recording(tmp_path / "full.bag", "ros1", {"/points": clouds})
@@ -310,9 +327,7 @@ def test_bad_recordings_are_one_line(drive, tmp_path):
     assert "cut.mcap: unreadable recording: " in run_one_line(cut_mcap)
     # A later message's data shorter than its rows say: found before the first frame is run,
     # named by its index; a selection without it runs.
-    short = [(CLOUD, *(point_cloud(store, k, bytes(32 * (3 if k == 2 else 4)),
-              DRIVERS["velodyne"]["fields"], 32, 4) for store in (ROS1, ROS2)))
-             for k in range(4)]  # fmt: skip
+    short = blank_messages(4, size=lambda k: 32 * (3 if k == 2 else 4))
     bag = write_recording(tmp_path / "short.bag", "ros1", {"/points": short})
     result = runner.invoke(app, ["run", str(bag), "--out", str(tmp_path / "r")])
     assert result.exit_code == 2 and "Traceback" not in result.output
@@ -323,3 +338,12 @@ def test_bad_recordings_are_one_line(drive, tmp_path):
     with pytest.raises(InputError, match="000002: truncated"):
         open_dataset(bag).check(range(1, 4))
     open_dataset(bag).check(range(2))
+    # Header stamps that do not increase; a later message without the time field.
+    same = blank_messages(3, stamp=lambda k: 0)
+    line = run_one_line(write_recording(tmp_path / "same.bag", "ros1", {"/points": same}))
+    assert "same.bag/000001: header stamp 1700000000.000000000 s is not after" in line
+    fields = DRIVERS["velodyne"]["fields"]  # "time" first
+    untimed = blank_messages(3, lambda k: fields[1:] if k == 1 else fields)
+    bag = write_recording(tmp_path / "untimed.bag", "ros1", {"/points": untimed})
+    with pytest.raises(InputError, match="untimed.bag/000001: per-point time field none, unlike"):
+        open_dataset(bag).check(range(3))

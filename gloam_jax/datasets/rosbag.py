@@ -99,6 +99,12 @@ def decode_cloud(msg, source: Path | str) -> tuple[np.ndarray, np.ndarray | None
     return scan_from_columns(columns, source)
 
 
+def time_field(msg) -> str | None:
+    """The field a message's per-point times are taken from, or None."""
+    names = [f.name.lower() for f in msg.fields]
+    return next((name for name in TIME_NAMES if name in names), None)
+
+
 def describe_fields(msg) -> str:
     """``x:float32@0 y:float32@4 ...``: each field's name, type and offset (count if not 1)."""
     order = ">" if msg.is_bigendian else "<"
@@ -184,12 +190,18 @@ class RosbagDataset(Dataset):
             self.topic = choose_topic(reader, topic, path)
             for i, msg in topic_messages(reader, self.topic):
                 stamps.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
+                if i == 0:
+                    first, self._time_field = msg, time_field(msg)
                 try:
                     point_dtype(msg, self.scan_path(i))
+                    if time_field(msg) != self._time_field:  # deskewing needs every scan's
+                        raise InputError(
+                            self.scan_path(i),
+                            f"per-point time field {time_field(msg) or 'none'}, unlike the "
+                            f"first message's {self._time_field or 'none'}",
+                        )
                 except InputError as err:
                     problems[i] = err  # raised by check() only when the scan is run
-                if i == 0:
-                    first = msg
         if not stamps:
             raise InputError(path, f"topic '{self.topic}' has no messages")
         self._times = np.asarray(stamps, np.float64)
@@ -204,8 +216,6 @@ class RosbagDataset(Dataset):
         if 0 in problems:  # the first message's layout is the recording's: unusable
             raise problems[0]
         self._problems = problems
-        names = [f.name.lower() for f in first.fields]
-        self._time_field = next((n for n in TIME_NAMES if n in names), None)
         if path.is_dir():
             storage = "MCAP" if any(path.glob("*.mcap")) else "sqlite3"
             recording = f"ROS 2 bag ({storage})"
