@@ -15,6 +15,7 @@ from gloam_jax.cli.common import (
     SequenceOpt,
     StartOpt,
     StrideOpt,
+    TopicOpt,
     app,
     cache_dir,
     console,
@@ -90,15 +91,18 @@ def run_odometry(
     start: int = 0,
     frames: int | None = None,
     stride: int = 1,
+    topic: str | None = None,
 ) -> dict:
     from gloam_jax.datasets import open_dataset
     from gloam_jax.pipeline import run_dataset, select_frames
 
-    dataset = open_dataset(data, sequence)
+    dataset = open_dataset(data, sequence, topic=topic)
     chosen = select_frames(len(dataset), start, frames, stride)
     console.print(
         f"{dataset.kind} data {data} ({dataset.name}): {len(chosen)} of {len(dataset)} scans"
     )
+    for key, value in dataset.details.items():
+        console.print(f"  {key}: {value}", highlight=False)
     for note in dataset.defaults:
         console.print(f"  default: {note}")
     with frame_progress(f"{config.method} {dataset.name}", len(chosen)) as step:
@@ -158,6 +162,7 @@ def method_settings(config: Path | None, method: str | None, weights: Path | Non
         "Examples:\n\n"
         "  gloam run data/sim --sequence 00\n\n"
         "  gloam run ../shared/data/real_kitti16   (any folder of .bin/.pcd/.ply/.npy scans)\n\n"
+        "  gloam run drive.bag --topic /ouster/points   (ROS 1 or 2 bag, or .mcap)\n\n"
         "  gloam run /data/kitti --sequence 07 --method gloam --start 100 --frames 500 "
         "--stride 2 --out results/gloam\n\n"
         "  gloam run data/sim --sequence 00 --method gloam --weights model.npz"
@@ -167,6 +172,7 @@ def method_settings(config: Path | None, method: str | None, weights: Path | Non
 def run(
     data: DataArg,
     sequence: SequenceOpt = None,
+    topic: TopicOpt = None,
     method: Annotated[
         str | None,
         typer.Option(help="gicp, gicp_da, gicp_ce or gloam: the shipped settings of that method."),
@@ -190,15 +196,16 @@ def run(
     ] = None,
     compilation_cache: Annotated[bool, typer.Option(help=CACHE_HELP)] = True,
 ) -> None:
-    """Run LiDAR odometry on a KITTI sequence or a folder of scans (real or simulated), and
-    score it when ground truth exists."""
+    """Run LiDAR odometry on a KITTI sequence, a folder of scans (real or simulated) or a
+    ROS bag / MCAP recording, and score it when ground truth exists."""
     settings = method_settings(config, method, weights)
     if compilation_cache:
         use_compilation_cache()
     with run_folder(out) as run_dir:
         run_odometry(
-            data, sequence, settings, run_dir, features, start=start, frames=frames, stride=stride
-        )
+            data, sequence, settings, run_dir, features, start=start, frames=frames,
+            stride=stride, topic=topic,
+        )  # fmt: skip
 
 
 @app.command(epilog="Example:\n\n  gloam demo --frames 150 --out results")
