@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from io import BytesIO
 from pathlib import Path
@@ -127,6 +127,23 @@ class SweepSimulator:
 
     def frame(self, i: int) -> FrameScan:
         """Simulate frame ``i`` of the trajectory's window."""
+        return self.finish(self.cast(i))
+
+    def frames(self, indices: Iterable[int]) -> Iterator[tuple[int, FrameScan]]:
+        """Simulate the frames ``indices`` in order, each frame's rays cast (asynchronously, by
+        XLA's threads) while the one before is measured and returned: the host's work and
+        the ray caster's overlap. Yields (index, scan)."""
+        pending = None
+        for i in indices:
+            cast = self.cast(i)
+            if pending is not None:
+                yield pending[0], self.finish(pending[1])
+            pending = (i, cast)
+        if pending is not None:
+            yield pending[0], self.finish(pending[1])
+
+    def cast(self, i: int) -> tuple:
+        """Start casting frame ``i``'s rays; :meth:`finish` turns the result into a scan."""
         sensor, W, B = self.sensor, self.sensor.num_columns, self.sensor.num_beams
         t_frame, T_frame, T_cols, ray_dt = self._sweep(i)
         origin = T_frame[:3, 3]
@@ -162,8 +179,13 @@ class SweepSimulator:
             self.reflectivity_lut,
             t_max=float(sensor.max_range + 5.0),
         )
-        hits = [np.asarray(h).reshape(W, B) for h in hits]
-        return self._measure(i, *hits, ray_dt)
+        return i, hits, ray_dt
+
+    def finish(self, cast: tuple) -> FrameScan:
+        """The scan of a :meth:`cast` (waits for its rays)."""
+        i, hits, ray_dt = cast
+        W, B = self.sensor.num_columns, self.sensor.num_beams
+        return self._measure(i, *(np.asarray(h).reshape(W, B) for h in hits), ray_dt)
 
     def _measure(self, i, t, label, refl, cos_inc, col_dt) -> FrameScan:
         """Apply the sensor's error model to true ranges (W, B) and build the point cloud."""
@@ -299,15 +321,16 @@ def write_sequence(
     io.write_calib(seq_dir / "calib.txt", {**P, "Tr": traj.Tr_cam_velo})
     times = traj.frame_times - traj.frame_times[0]
     io.write_atomic(seq_dir / "times.txt", "".join(f"{t:.6e}\n" for t in times))
-    for i in range(traj.num_frames):
+    todo = [
+        i for i in range(traj.num_frames) if not all(map(Path.exists, _frame_paths(seq_dir, i)))
+    ]
+    for i, scan in sim.frames(todo):
         paths = _frame_paths(seq_dir, i)
-        if not all(p.exists() for p in paths):
-            scan = sim.frame(i)
-            io.write_labels(paths[1], scan.labels)
-            buffer = BytesIO()
-            np.save(buffer, scan.times)
-            io.write_atomic(paths[2], buffer.getvalue())
-            io.write_scan_bin(paths[0], scan.points)  # last: its presence marks the frame done
+        io.write_labels(paths[1], scan.labels)
+        buffer = BytesIO()
+        np.save(buffer, scan.times)
+        io.write_atomic(paths[2], buffer.getvalue())
+        io.write_scan_bin(paths[0], scan.points)  # last: its presence marks the frame done
         if progress is not None:
             progress(i)
     counts = [_frame_paths(seq_dir, i)[0].stat().st_size // 16 for i in range(traj.num_frames)]
