@@ -1,8 +1,8 @@
 """Dataset -> odometry -> metrics -> result files, for one sequence of scans.
 
 The data comes from any registered loader (:mod:`gloam_jax.datasets`: the KITTI layout, a
-folder of scans). A run folder holds (``NN`` the dataset's name: the KITTI sequence id or the
-folder's name)::
+folder of scans, a ROS bag or MCAP recording). A run folder holds (``NN`` the dataset's name:
+the KITTI sequence id, the folder's or the recording's name)::
 
     NN_poses_kitti.txt        estimate, ground-truth convention (camera 0 with a calibration,
                               else the LiDAR frame); compare with the ground truth
@@ -12,6 +12,8 @@ folder's name)::
     NN_gt_tum.txt             the same with the frame times (evo_ape tum)
     metrics.json              KITTI RTE and ATE (when ground truth exists), timing, frame
                               flags, the deskew policy and time convention, the defaults taken,
+                              what the loader found (dataset_details: a recording's topic,
+                              message count and point fields),
                               the model run and why (model_choice: the scans' sensor, the
                               guard's decision)
     trajectory.png            the trajectory (against the ground truth, with the error per
@@ -171,6 +173,7 @@ def run_dataset(
     files = RunFiles(dataset, out, frames)
     frame_ms, feature_ms = record["frame_ms"], record["feature_ms"]
     extra = {"deskew": deskew, "defaults": list(dataset.defaults), "dataset": dataset.kind,
+             "dataset_details": dict(dataset.details),
              "frames": {"start": frames.start, "stride": frames.step, "count": n},
              "model_choice": choice.record, "warnings": record["warnings"],
              "skipped_frames": record["skipped"],

@@ -45,6 +45,15 @@ def _ply() -> bytes:
     return head.encode() + points.tobytes()
 
 
+def _ply_ascii() -> bytes:
+    head = (
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nproperty float intensity\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n"
+    )
+    return (head + "0 1 2 0.5\n1 2 3 0.25\n2 3 4 1\n3 0 1 2\n").encode()
+
+
 def _npy() -> bytes:
     import io as pyio
 
@@ -58,6 +67,7 @@ VALID = {
     "scan.pcd": _pcd(binary=True),
     "ascii.pcd": _pcd(binary=False),
     "scan.ply": _ply(),
+    "ascii.ply": _ply_ascii(),
     "scan.npy": _npy(),
     "000000.label": np.arange(8, dtype=np.uint32).tobytes(),
     "poses.txt": b"1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 1.5 0 1 0 0 0 0 1 0.2\n",

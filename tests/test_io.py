@@ -265,6 +265,30 @@ def test_ply_round_trip(tmp_path, fmt):
     np.testing.assert_allclose(back, points, rtol=1e-6)
 
 
+def test_ply_big_endian_with_faces_before_the_vertices_and_a_time_field(tmp_path):
+    """plyfile reads what the hand parser refused: list properties before the vertices."""
+    from plyfile import PlyData, PlyElement
+
+    points = random_points(12, seed=6)
+    vertex = np.zeros(12, [("z", ">f8"), ("x", ">f4"), ("y", ">f4"), ("time", ">f8"),
+                           ("intensity", ">u2")])  # fmt: skip
+    for k, name in enumerate("xyz"):
+        vertex[name] = points[:, k]
+    vertex["intensity"] = np.arange(12)
+    vertex["time"] = np.linspace(0, 0.1, 12)
+    face = np.array([([0, 1, 2],)], [("vertex_indices", "O")])
+    elements = [PlyElement.describe(face, "face"), PlyElement.describe(vertex, "vertex")]
+    path = tmp_path / "big.ply"
+    PlyData(elements, byte_order=">").write(str(path))
+    scan, times = read_scan_with_times(path)
+    np.testing.assert_allclose(scan[:, :3], points[:, :3], rtol=1e-6)
+    np.testing.assert_array_equal(scan[:, 3], np.arange(12))
+    np.testing.assert_array_equal(times, vertex["time"])
+    path.write_bytes(path.read_bytes()[:-10])
+    with pytest.raises(InputError, match=r"big\.ply: not a readable PLY file \(.*end-of-file"):
+        gio.read_scan(path)
+
+
 def test_npy_scans(tmp_path):
     points = random_points(10, seed=5)
     np.save(tmp_path / "a.npy", points[:, :3].astype(np.float64))
@@ -423,14 +447,19 @@ def test_pcd_round_trip_with_times(tmp_path, data):
     np.testing.assert_allclose(read_times, times, rtol=1e-12)
 
 
-def test_lzf_round_trip_and_a_known_stream():
-    from gloam_jax.io.scans import lzf_compress, lzf_decompress
-
-    data = bytes(np.random.default_rng(5).integers(0, 3, 5000, dtype=np.uint8)) + b"abc" * 400
-    assert lzf_decompress(lzf_compress(data), len(data)) == data
-    # A hand-made stream: a literal 'a'; a 3-byte copy from 1 back (short form); a 9-byte
-    # copy from 1 back (long form: length 7 + extra byte 0, + 2).
-    assert lzf_decompress(b"\x00a\x20\x00\xe0\x00\x00", 13) == b"a" * 13
+def test_pcd_binary_compressed_from_a_known_lzf_stream(tmp_path):
+    """A hand-made LZF stream, as PCL's liblzf writes one: a literal 'a', then an 11-byte copy
+    from 1 back (long form: length 7 + extra byte 2, + 2): x, y, z of one point, all 'aaaa'."""
+    header = (
+        b"VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 1\nHEIGHT 1\n"
+        b"POINTS 1\nDATA binary_compressed\n"
+    )
+    stream = b"\x00a\xe0\x02\x00"
+    path = tmp_path / "known.pcd"
+    path.write_bytes(header + np.array([len(stream), 12], "<u4").tobytes() + stream)
+    check_scan(path)
+    expected = np.frombuffer(b"a" * 12, "<f4")
+    np.testing.assert_array_equal(gio.read_scan(path), [[*expected, 0.0]])
 
 
 def test_pcd_binary_compressed_corrupt(tmp_path):

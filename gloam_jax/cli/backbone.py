@@ -15,6 +15,7 @@ from gloam_jax.cli.common import (
     StartOpt,
     StrideOpt,
     Tasks,
+    TopicOpt,
     app,
     console,
     frame_progress,
@@ -97,6 +98,7 @@ def train_backbone(
 def segment(
     data: DataArg,
     sequence: SequenceOpt = None,
+    topic: TopicOpt = None,
     start: StartOpt = 0,
     frames: Annotated[int | None, typer.Option(min=1, help="At most N scans.")] = None,
     stride: StrideOpt = 1,
@@ -124,7 +126,7 @@ def segment(
     from gloam_jax.simulate.world import CLASS_NAMES
     from gloam_jax.training.segmentation import confusion_matrix, iou_scores
 
-    dataset = open_dataset(data, sequence)
+    dataset = open_dataset(data, sequence, topic=topic)
     chosen = select_frames(len(dataset), start, frames, stride)
     dataset.check(chosen)
     backbone = NetBackbone(weights)

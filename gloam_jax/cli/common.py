@@ -115,10 +115,18 @@ def frame_progress(description: str, total: int, every: int | None = None) -> It
 
 # The scans a command reads, as `gloam run` and `gloam segment` take them.
 DataArg = Annotated[
-    Path, typer.Argument(help="KITTI root (sequences/, poses/) or a folder of scans.")
+    Path,
+    typer.Argument(
+        help="KITTI root (sequences/, poses/), a folder of scans, a ROS 1 bag (.bag), a ROS 2 "
+        "bag folder or an MCAP file (.mcap)."
+    ),
 ]
 SequenceOpt = Annotated[
     str | None, typer.Option(help="KITTI sequence id, e.g. 00 (needed when several).")
+]
+TopicOpt = Annotated[
+    str | None,
+    typer.Option(help="PointCloud2 topic of a ROS bag or MCAP file (needed when several)."),
 ]
 StartOpt = Annotated[int, typer.Option(min=0, help="First scan (index).")]
 StrideOpt = Annotated[int, typer.Option(min=1, help="Every k-th scan.")]

@@ -15,6 +15,7 @@ from gloam_jax.cli.common import (
     SequenceOpt,
     StartOpt,
     StrideOpt,
+    TopicOpt,
     app,
     cache_dir,
     console,
@@ -91,6 +92,7 @@ def run_odometry(
     start: int = 0,
     frames: int | None = None,
     stride: int = 1,
+    topic: str | None = None,
     on_bad_scan: str = "stop",
     resume=None,
     flush_every: int = 100,
@@ -101,16 +103,19 @@ def run_odometry(
     from gloam_jax.interrupt import Terminated
     from gloam_jax.pipeline import run_dataset, select_frames
 
-    dataset = open_dataset(data, sequence)
+    dataset = open_dataset(data, sequence, topic=topic)
     chosen = select_frames(len(dataset), start, frames, stride)
     console.print(
         f"{dataset.kind} data {data} ({dataset.name}): {len(chosen)} of {len(dataset)} scans"
     )
+    for key, value in dataset.details.items():
+        console.print(f"  {key}: {value}", highlight=False)
     for note in dataset.defaults:
         console.print(f"  default: {note}")
     if resume is not None:
         console.print(f"  resuming {run_dir}: {resume.ended}")
-    again = f"gloam run {data}{f' --sequence {sequence}' if sequence else ''} --resume {run_dir}"
+    which = (f" --sequence {sequence}" if sequence else "") + (f" --topic {topic}" if topic else "")
+    again = f"gloam run {data}{which} --resume {run_dir}"
     try:
         with frame_progress(f"{config.method} {dataset.name}", len(chosen)) as step:
             result = run_dataset(dataset, config, run_dir, chosen, progress=step,
@@ -194,6 +199,7 @@ def method_settings(config: Path | None, method: str | None, weights: Path | Non
         "Examples:\n\n"
         "  gloam run data/sim --sequence 00\n\n"
         "  gloam run ../shared/data/real_kitti16   (any folder of .bin/.pcd/.ply/.npy scans)\n\n"
+        "  gloam run drive.bag --topic /ouster/points   (ROS 1 or 2 bag, or .mcap)\n\n"
         "  gloam run /data/kitti --sequence 07 --method gloam --start 100 --frames 500 "
         "--stride 2 --out results/gloam\n\n"
         "  gloam run data/sim --sequence 00 --method gloam --weights model.npz\n\n"
@@ -204,6 +210,7 @@ def method_settings(config: Path | None, method: str | None, weights: Path | Non
 def run(
     data: DataArg,
     sequence: SequenceOpt = None,
+    topic: TopicOpt = None,
     method: Annotated[
         str | None,
         typer.Option(help="gicp, gicp_da, gicp_ce or gloam: the shipped settings of that method."),
@@ -245,15 +252,15 @@ def run(
     ] = 100,
     compilation_cache: Annotated[bool, typer.Option(help=CACHE_HELP)] = True,
 ) -> None:
-    """Run LiDAR odometry on a KITTI sequence or a folder of scans (real or simulated), and
-    score it when ground truth exists. Poses are written every 100 frames and on Ctrl-C or
-    SIGTERM; --resume continues such a run."""
+    """Run LiDAR odometry on a KITTI sequence, a folder of scans (real or simulated) or a
+    ROS bag / MCAP recording, and score it when ground truth exists. Poses are written every
+    100 frames and on Ctrl-C or SIGTERM; --resume continues such a run."""
     if on_bad_scan not in ("stop", "skip"):
         raise InputError(None, f"--on-bad-scan must be stop or skip, not {on_bad_scan!r}")
     if compilation_cache:
         use_compilation_cache()
     if resume is not None:
-        resume_run(data, sequence, resume, on_bad_scan, flush_every,
+        resume_run(data, sequence, topic, resume, on_bad_scan, flush_every,
                    {"--method": method, "--config": config, "--weights": weights,
                     "--features": features, "--start": start or None, "--frames": frames,
                     "--stride": None if stride == 1 else stride})  # fmt: skip
@@ -265,11 +272,12 @@ def run(
         console.print(f"note: {unfinished} was {ended}; --resume {unfinished} continues it")
     with run_folder(out) as run_dir:
         run_odometry(data, sequence, settings, run_dir, features, start=start, frames=frames,
-                     stride=stride, on_bad_scan=on_bad_scan, flush_every=flush_every)  # fmt: skip
+                     stride=stride, topic=topic, on_bad_scan=on_bad_scan,
+                     flush_every=flush_every)  # fmt: skip
 
 
-def resume_run(data: Path, sequence: str | None, run_dir: Path, on_bad_scan: str,
-               flush_every: int, given: dict) -> None:  # fmt: skip
+def resume_run(data: Path, sequence: str | None, topic: str | None, run_dir: Path,
+               on_bad_scan: str, flush_every: int, given: dict) -> None:  # fmt: skip
     """Continue the unfinished run in ``run_dir`` with the settings and frames it recorded;
     ``given``: the other options on the command line, which must be left out."""
     from gloam_jax.config import load_config
@@ -286,25 +294,25 @@ def resume_run(data: Path, sequence: str | None, run_dir: Path, on_bad_scan: str
     features = None if record["features_dir"] is None else Path(record["features_dir"])
     run_odometry(data, sequence, load_config(run_dir / "config.yaml"), run_dir, features,
                  start=record["start"], frames=record["count"], stride=record["stride"],
-                 on_bad_scan=on_bad_scan, resume=checkpoint,
+                 topic=topic, on_bad_scan=on_bad_scan, resume=checkpoint,
                  flush_every=flush_every)  # fmt: skip
     mark_latest(run_dir)
 
 
-@app.command(epilog="Example:\n\n  gloam demo --frames 150 --out results")
+@app.command(epilog="Example:\n\n  gloam demo --frames 400 --out results")
 @user_errors
 def demo(
     frames: Annotated[
-        int, typer.Option(min=20, help="Scans to simulate (>100 m of driving).")
-    ] = 150,
+        int, typer.Option(min=20, help="Scans to simulate (400: 350 m, devkit segments to 300 m).")
+    ] = 400,
     out: Annotated[Path, typer.Option(help="Results folder (a timestamped run inside).")] = Path(
         "results"
     ),
     seed: Annotated[int, typer.Option(help="Scene seed.")] = 0,
     compilation_cache: Annotated[bool, typer.Option(help=CACHE_HELP)] = True,
 ) -> None:
-    """Simulate a short urban drive (cached), run GICP and Generalized LOAM (the shipped
-    model) odometry on it, and score both."""
+    """Simulate an urban drive (cached), run GICP and Generalized LOAM (the shipped model)
+    odometry on it, and score both on the devkit's segments."""
     from gloam_jax.config import load_config
     from gloam_jax.simulate.sequence import FORMAT_VERSION
 
@@ -317,13 +325,17 @@ def demo(
     with run_folder(out) as run_dir:
         results = {c.method: run_odometry(data, "00", c, run_dir / c.method) for c in (gicp, gloam)}
     table = Table(title="GICP vs Generalized LOAM on the demo drive")
-    for column in ("method", "t_err (%)", "r_err (deg/100 m)", "ATE rmse (m)", "ms/frame"):
+    columns = ("method", "t_err (%)", "r_err (deg/100 m)", "ATE rmse (m)", "ms/frame, registration",
+               "ms/frame, features")  # fmt: skip
+    for column in columns:
         table.add_column(column, justify="right")
     for method, r in results.items():
         if "t_err_percent" not in r:
             continue
+        features = r.get("median_ms_features")  # the backbone's, on the host: learned methods
         table.add_row(
             method, f"{r['t_err_percent']:.3f}", f"{r['r_err_deg_per_100m']:.3f}",
             f"{r['ate']['rmse']:.3f}", f"{r['median_ms_per_frame']:.0f}",
+            "-" if features is None else f"{features:.0f}",
         )  # fmt: skip
     console.print(table)

@@ -19,6 +19,9 @@ class Dataset:
     kind: str  # the loader's name
     distorted: bool  # raw scans known to be motion-distorted (auto deskew uses the azimuth)
     defaults: list[str]  # each default taken for a missing file, said once in the run summary
+    # what the loader found (a recording's topic, message count, point fields), said once in
+    # the run summary and kept in metrics.json
+    details: dict[str, object] = {}
 
     def __len__(self) -> int:
         raise NotImplementedError
@@ -62,37 +65,47 @@ class Dataset:
 class Loader:
     name: str
     detect: Callable[[Path], bool]  # does this path look like the loader's data?
-    open: Callable[[Path, str | None], Dataset]  # (path, sequence or None) -> dataset
+    open: Callable[..., Dataset]  # (path, sequence or None, **options) -> dataset
+    options: tuple[str, ...] = ()  # keyword options it takes (a recording's topic)
 
 
 LOADERS: dict[str, Loader] = {}
 
 
-def register(name: str, detect: Callable[[Path], bool]):
-    """Class decorator: ``cls(path, sequence)`` opens the data that ``detect(path)`` accepts.
-    Loaders are tried in the order they registered."""
+def register(name: str, detect: Callable[[Path], bool], options: tuple[str, ...] = ()):
+    """Class decorator: ``cls(path, sequence, **options)`` opens the data that
+    ``detect(path)`` accepts. Loaders are tried in the order they registered."""
 
     def wrap(cls):
-        LOADERS[name] = Loader(name, detect, cls)
+        LOADERS[name] = Loader(name, detect, cls, options)
         return cls
 
     return wrap
 
 
-def open_dataset(path: str | Path, sequence: str | None = None, kind: str | None = None) -> Dataset:
-    """The dataset at ``path``: by the loader named ``kind``, or the first that recognises it."""
+def open_dataset(
+    path: str | Path, sequence: str | None = None, kind: str | None = None, **options
+) -> Dataset:
+    """The dataset at ``path``: by the loader named ``kind``, or the first that recognises it.
+    ``options`` not None (``topic``) go to a loader that takes them, and are an error for
+    another."""
     path = Path(path)
     if kind is not None:
         if kind not in LOADERS:
             raise InputError(None, f"unknown dataset kind '{kind}' (one of {', '.join(LOADERS)})")
-        return LOADERS[kind].open(path, sequence)
-    if not path.exists():
-        raise InputError(path, "not found")
-    if not path.is_dir():
-        raise InputError(path, "not a folder (give a KITTI root or a folder of scans)")
-    for loader in LOADERS.values():
-        if loader.detect(path):
-            return loader.open(path, sequence)
-    raise InputError(
-        path, "neither a KITTI root (sequences/) nor a folder of .bin, .pcd, .ply or .npy scans"
-    )
+        loader = LOADERS[kind]
+    else:
+        if not path.exists():
+            raise InputError(path, "not found")
+        loader = next((lo for lo in LOADERS.values() if lo.detect(path)), None)
+        if loader is None:
+            raise InputError(
+                path,
+                "neither a KITTI root (sequences/), a folder of .bin, .pcd, .ply or .npy scans, "
+                "nor a ROS bag, ROS 2 bag folder or MCAP file",
+            )
+    given = {name: value for name, value in options.items() if value is not None}
+    wrong = [name for name in given if name not in loader.options]
+    if wrong:
+        raise InputError(path, f"--{wrong[0]} does not apply to {loader.name} data")
+    return loader.open(path, sequence, **given)

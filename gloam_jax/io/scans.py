@@ -5,15 +5,25 @@ Points with NaN coordinates are returned as they are, not an error: later stages
 them. A KITTI ``.bin`` holds the points as little-endian float32 ``x y z i`` records. PCD and PLY
 files may carry per-point times in a field named ``t``, ``time``, ``timestamp``,
 ``time_offset`` or ``offset_time`` (any unit or origin: see :mod:`gloam_jax.preprocess`).
-PCD's ``binary_compressed`` data is LZF-compressed, one field after another (PCL's layout).
+PCD's ``binary_compressed`` data is LZF-compressed, one field after another (PCL's layout);
+liblzf itself (``python-neo-lzf``) packs and unpacks it. PLY files are read by ``plyfile``.
+
+PCD is parsed here, not by ``pypcd4``: pypcd4 1.5 reads a binary file cut short as fewer points
+without a word (a 50-point file missing one point's bytes came back as 49 points), stops
+reading a header after 10 lines, gives PCL's repeated ``_`` padding fields random names and
+needs pydantic; this parser is short, checks every size against the header, and is fuzzed
+(tests/test_fuzz.py).
 """
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
 
+import lzf
 import numpy as np
+import plyfile
 
 from gloam_jax.errors import InputError
 from gloam_jax.io.files import PathLike, load_npy, read_bytes, write_atomic
@@ -23,6 +33,7 @@ __all__ = [
     "check_scan",
     "has_time_field",
     "read_scan",
+    "scan_from_columns",
     "read_scan_with_times",
     "write_scan_bin",
     "write_scan_pcd",
@@ -32,16 +43,16 @@ SCAN_SUFFIXES = (".bin", ".pcd", ".ply", ".npy")
 
 # Field names taken as intensity, in order of preference (PCL, PLY exporters, SemanticKITTI).
 _INTENSITY_NAMES = ("intensity", "i", "reflectance", "remission", "scalar_intensity")
-# Field names taken as per-point time (Ouster "t" in ns, Velodyne "time", Hesai "timestamp",
-# Livox "offset_time").
-_TIME_NAMES = ("t", "time", "timestamp", "time_offset", "offset_time", "timestamps")
+# Field names taken as per-point time, in order of preference (Ouster "t" in ns, Velodyne "time"
+# in s, Hesai and Robosense "timestamp" in absolute s, Livox "offset_time" in ns).
+TIME_NAMES = ("t", "time", "timestamp", "time_offset", "offset_time", "timestamps")
 
 
 def read_scan(path: PathLike) -> np.ndarray:
     """Point cloud file -> ``(N, 4)`` float32 ``[x, y, z, intensity]``; format by extension.
 
     ``.bin`` (KITTI float32 x y z i), ``.pcd`` (ascii / binary / binary_compressed, any field
-    order and numeric type), ``.ply`` (ascii / binary vertex element), ``.npy`` (``(N, 3)`` or
+    order and numeric type), ``.ply`` (the vertex element of any PLY), ``.npy`` (``(N, 3)`` or
     ``(N, 4+)``). Intensity is zero when the file has none. NaN points are kept.
     """
     return read_scan_with_times(path)[0]
@@ -61,11 +72,19 @@ def read_scan_with_times(path: PathLike) -> tuple[np.ndarray, np.ndarray | None]
         raise InputError(
             path, f"unsupported scan format '{suffix}' (expected .bin, .pcd, .ply or .npy)"
         )
-    columns = readers[suffix](path)
-    points = _assemble(path, columns)
+    return scan_from_columns(readers[suffix](path), path)
+
+
+def scan_from_columns(
+    columns: dict[str, np.ndarray], source: PathLike | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Named 1-D point columns (any file's or message's fields, names lower case) -> the scan
+    ``(N, 4)`` float32 ``[x, y, z, intensity]`` and its per-point times ``(N,)`` as stored
+    (int64 for integer fields, else float64), or None without a time field."""
+    points = _assemble(source, columns)
     if len(points) == 0:
-        raise InputError(path, "empty scan (no points)")
-    times = next((columns[k] for k in _TIME_NAMES if k in columns), None)
+        raise InputError(source, "empty scan (no points)")
+    times = next((columns[k] for k in TIME_NAMES if k in columns), None)
     if times is not None:
         times = times.astype(np.int64 if times.dtype.kind in "iu" else np.float64)
     return points, times
@@ -134,7 +153,7 @@ def has_time_field(path: PathLike) -> bool:
             path, head if b"end_header" in head else read_bytes(path), "end_header"
         )
         names = [w[-1].lower() for w in lines if w[0] == "property"]
-    return any(name in _TIME_NAMES for name in names)
+    return any(name in TIME_NAMES for name in names)
 
 
 def load_npy_header(path: PathLike, head: bytes) -> None:
@@ -176,7 +195,7 @@ def _read_bin(path: PathLike) -> np.ndarray:
     return dict(zip(("x", "y", "z", "intensity"), table.T, strict=True))
 
 
-def _assemble(path: PathLike, columns: dict[str, np.ndarray]) -> np.ndarray:
+def _assemble(path: PathLike | None, columns: dict[str, np.ndarray]) -> np.ndarray:
     """Pick x, y, z and intensity out of named 1-D columns -> ``(n, 4)`` float32."""
     missing = [c for c in "xyz" if c not in columns]
     if missing:
@@ -204,11 +223,9 @@ def _split_header(path: PathLike, raw: bytes, last_key: str) -> tuple[list[list[
             return lines, pos
 
 
-def _ascii_table(
-    path: PathLike, raw: bytes, data_start: int, skip: int, n: int, ncols: int
-) -> np.ndarray:
-    """``n`` lines of ``ncols`` numbers after ``skip`` lines of the data starting at byte
-    ``data_start`` -> ``(n, ncols)`` float64. Blank lines are ignored."""
+def _ascii_table(path: PathLike, raw: bytes, data_start: int, n: int, ncols: int) -> np.ndarray:
+    """The first ``n`` lines of ``ncols`` numbers of the data starting at byte ``data_start``
+    -> ``(n, ncols)`` float64. Blank lines are ignored."""
     first_line = raw.count(b"\n", 0, data_start) + 1
     text = raw[data_start:].decode("ascii", errors="replace")
     numbered = [
@@ -216,7 +233,7 @@ def _ascii_table(
         for lineno, line in enumerate(text.splitlines(), start=first_line)
         if line.strip()
     ]
-    numbered = numbered[skip : skip + n]
+    numbered = numbered[:n]
     if len(numbered) < n:
         raise InputError(path, f"truncated: header says {n} points, found {len(numbered)} lines")
     for lineno, fields in numbered:
@@ -297,7 +314,7 @@ def _read_pcd(path: PathLike) -> dict[str, np.ndarray]:
             columns.setdefault(name, values.reshape(n, -1)[:, 0])
     else:
         counts = [dtype[f"f{k}"].shape[0] for k in range(len(names))]
-        table = _ascii_table(path, raw, data_start, 0, n, sum(counts))
+        table = _ascii_table(path, raw, data_start, n, sum(counts))
         starts = np.cumsum([0] + counts[:-1])
         for name, start in zip(names, starts, strict=True):
             columns.setdefault(name, table[:, start])
@@ -319,88 +336,13 @@ def _pcd_decompress(path: PathLike, raw: bytes, start: int, expected: int) -> by
         raise InputError(
             path, f"truncated: {packed} bytes of compressed data, found {len(raw) - start - 8}"
         )
-    return lzf_decompress(raw[start + 8 : start + 8 + packed], unpacked, path)
-
-
-def lzf_decompress(data: bytes, size: int, path: PathLike | None = None) -> bytes:
-    """Decompress an LZF stream (liblzf's format, as PCL writes it) of ``size`` bytes.
-
-    Each control byte ``c`` starts either a literal run (``c < 32``: the next ``c + 1`` bytes)
-    or a back reference (length ``(c >> 5) + 2``, plus a byte when ``c >> 5`` is 7; offset
-    ``((c & 31) << 8) + next byte + 1`` back from the end of the output).
-    """
-    out = bytearray()
-    i, n = 0, len(data)
     try:
-        while i < n:
-            c = data[i]
-            i += 1
-            if c < 32:
-                out += data[i : i + c + 1]
-                i += c + 1
-                continue
-            length = c >> 5
-            if length == 7:
-                length += data[i]
-                i += 1
-            ref = len(out) - ((c & 31) << 8) - data[i] - 1
-            i += 1
-            length += 2
-            if ref < 0:
-                raise IndexError
-            if ref + length <= len(out):
-                out += out[ref : ref + length]
-            else:  # the copy overlaps what it writes: repeat the pattern
-                for k in range(length):
-                    out.append(out[ref + k])
-    except IndexError:
-        raise InputError(
-            path, "corrupt LZF data (a reference before the start or past the end)"
-        ) from None
-    if len(out) != size:
-        raise InputError(path, f"corrupt LZF data: {len(out)} bytes unpacked, expected {size}")
-    return bytes(out)
-
-
-def lzf_compress(data: bytes) -> bytes:
-    """Compress ``data`` into liblzf's format (greedy, 3-byte hash matches; for writing test
-    files and small scans, not speed)."""
-    out = bytearray()
-    literal = bytearray()
-    table: dict[bytes, int] = {}
-    i, n = 0, len(data)
-
-    def flush() -> None:
-        for k in range(0, len(literal), 32):
-            chunk = literal[k : k + 32]
-            out.append(len(chunk) - 1)
-            out.extend(chunk)
-        literal.clear()
-
-    while i < n:
-        key = data[i : i + 3]
-        ref = table.get(key) if len(key) == 3 else None
-        table[key] = i
-        if ref is not None and i - ref - 1 < 8192:
-            length = 3
-            limit = min(n - i, 264)
-            while length < limit and data[ref + length] == data[i + length]:
-                length += 1
-            flush()
-            offset = i - ref - 1
-            code = length - 2
-            if code < 7:
-                out.append((code << 5) | (offset >> 8))
-            else:
-                out.append((7 << 5) | (offset >> 8))
-                out.append(code - 7)
-            out.append(offset & 255)
-            i += length
-        else:
-            literal.append(data[i])
-            i += 1
-    flush()
-    return bytes(out)
+        data = lzf.decompress(raw[start + 8 : start + 8 + packed], unpacked) if unpacked else b""
+    except ValueError:  # liblzf's "error in compressed data": a reference out of bounds
+        data = None
+    if data is None or len(data) != unpacked:  # None: the data unpacks to more than that
+        raise InputError(path, f"corrupt LZF data (does not unpack to {unpacked} bytes)")
+    return data
 
 
 def write_scan_pcd(path: PathLike, points: np.ndarray, data: str = "binary",
@@ -436,68 +378,31 @@ def write_scan_pcd(path: PathLike, points: np.ndarray, data: str = "binary",
     elif data == "binary_compressed":
         raw = b"".join(np.ascontiguousarray(c, f"<f{f[2]}").tobytes()
                        for f, c in zip(fields, columns, strict=True))  # fmt: skip
-        packed = lzf_compress(raw)
+        # liblzf's worst case: one control byte per 32 literal bytes, plus one.
+        packed = lzf.compress(raw, len(raw) + len(raw) // 32 + 1) if raw else b""
         payload = np.array([len(packed), len(raw)], "<u4").tobytes() + packed
     else:
         raise InputError(path, f"unknown PCD DATA format '{data}'")
     write_atomic(path, header + payload)
 
 
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
-_PLY_ENDIAN = {"binary_little_endian": "<", "binary_big_endian": ">"}
-
-
 def _read_ply(path: PathLike) -> dict[str, np.ndarray]:
-    raw = read_bytes(path)
-    if not raw.startswith(b"ply"):
-        raise InputError(path, "not a PLY file (no 'ply' magic line)")
-    lines, data_start = _split_header(path, raw, "end_header")
-    fmt = next((w[1] for w in lines if w[0] == "format" and len(w) > 1), None)
-    if fmt != "ascii" and fmt not in _PLY_ENDIAN:
-        raise InputError(path, f"unsupported PLY format '{fmt}'")
-
-    # elements: [name, count, [(property, type) or (property, None) for list properties]]
-    elements: list[tuple[str, int, list[tuple[str, str | None]]]] = []
-    for words in lines:
-        try:
-            if words[0] == "element":
-                elements.append((words[1], int(words[2]), []))
-            elif words[0] == "property" and words[1] == "list":
-                elements[-1][2].append((words[4].lower(), None))
-            elif words[0] == "property":
-                elements[-1][2].append((words[2].lower(), _PLY_TYPES[words[1]]))
-        except (IndexError, ValueError, KeyError):
-            raise InputError(path, f"malformed PLY header line '{' '.join(words)}'") from None
-    names = [e[0] for e in elements]
-    if "vertex" not in names:
+    """The vertex element's scalar properties, by plyfile (ascii or binary, either byte order;
+    other elements and list properties anywhere are read past)."""
+    try:
+        ply = plyfile.PlyData.read(os.fspath(path))
+    except FileNotFoundError:
+        raise InputError(path, "file not found") from None
+    except (plyfile.PlyParseError, ValueError, UnicodeDecodeError) as err:
+        raise InputError(path, f"not a readable PLY file ({' '.join(str(err).split())})") from None
+    except MemoryError:  # plyfile allocates an ascii element's rows before reading them
+        raise InputError(path, "PLY header counts more elements than the file can hold") from None
+    if "vertex" not in ply:
         raise InputError(path, "PLY file has no vertex element")
-    iv = names.index("vertex")
-    _, n, props = elements[iv]
-    # List properties have no fixed size, so data before or inside the vertices cannot be skipped.
-    if any(t is None for e in elements[: iv + 1] for _, t in e[2]):
-        raise InputError(
-            path, "PLY list properties before or in the vertex element are unsupported"
-        )
-
-    columns: dict[str, np.ndarray] = {}
-    if fmt == "ascii":
-        skip = sum(e[1] for e in elements[:iv])
-        table = _ascii_table(path, raw, data_start, skip, n, len(props))
-        for k, (name, _) in enumerate(props):
-            columns.setdefault(name, table[:, k])
-    else:
-        endian = _PLY_ENDIAN[fmt]
-        skip = sum(e[1] * sum(np.dtype(t).itemsize for _, t in e[2]) for e in elements[:iv])
-        dtype = np.dtype([(f"f{k}", f"{endian}{t}") for k, (_, t) in enumerate(props)])
-        record = _binary_table(path, raw, data_start + skip, dtype, n)
-        for k, (name, _) in enumerate(props):
-            columns.setdefault(name, record[f"f{k}"])
-    return columns
+    vertex = ply["vertex"].data
+    return {
+        name.lower(): vertex[name] for name in vertex.dtype.names if vertex[name].dtype != object
+    }
 
 
 def _read_npy(path: PathLike) -> dict[str, np.ndarray]:

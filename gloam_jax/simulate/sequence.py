@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass
 from io import BytesIO
 from pathlib import Path
@@ -121,12 +121,29 @@ class SweepSimulator:
         the ray caster compiles once instead of each time a busier frame comes along."""
         for i in frames:
             t_frame, T_frame, T_cols, _ = self._sweep(int(i))
-            dirs = np.einsum("cij,cbj->cbi", T_cols[:, :3, :3], self.dirs_true)
+            dirs = _rotate_columns(T_cols, self.dirs_true)
             prims = self._sector_prims(t_frame, T_frame, T_cols, dirs, self._pads)
             self._pads = [p.valid.shape[0] for p in prims]
 
     def frame(self, i: int) -> FrameScan:
         """Simulate frame ``i`` of the trajectory's window."""
+        return self.finish(self.cast(i))
+
+    def frames(self, indices: Iterable[int]) -> Iterator[tuple[int, FrameScan]]:
+        """Simulate the frames ``indices`` in order, each frame's rays cast (asynchronously, by
+        XLA's threads) while the one before is measured and returned: the host's work and
+        the ray caster's overlap. Yields (index, scan)."""
+        pending = None
+        for i in indices:
+            cast = self.cast(i)
+            if pending is not None:
+                yield pending[0], self.finish(pending[1])
+            pending = (i, cast)
+        if pending is not None:
+            yield pending[0], self.finish(pending[1])
+
+    def cast(self, i: int) -> tuple:
+        """Start casting frame ``i``'s rays; :meth:`finish` turns the result into a scan."""
         sensor, W, B = self.sensor, self.sensor.num_columns, self.sensor.num_beams
         t_frame, T_frame, T_cols, ray_dt = self._sweep(i)
         origin = T_frame[:3, 3]
@@ -135,7 +152,7 @@ class SweepSimulator:
             rng = np.random.default_rng([self.seed, i, 0x717E])
             jitter = rng.normal(0.0, sensor.beam_jitter_deg, (2, W, B))
             dirs_true = sensor.directions(sensor.elevation_bias_deg + jitter[0], jitter[1])
-        dirs = np.einsum("cij,cbj->cbi", T_cols[:, :3, :3], dirs_true)
+        dirs = _rotate_columns(T_cols, dirs_true)
         origins = np.broadcast_to((T_cols[:, :3, 3] - origin)[:, None, :], dirs.shape)
         S = self.num_sectors
 
@@ -162,8 +179,13 @@ class SweepSimulator:
             self.reflectivity_lut,
             t_max=float(sensor.max_range + 5.0),
         )
-        hits = [np.asarray(h).reshape(W, B) for h in hits]
-        return self._measure(i, *hits, ray_dt)
+        return i, hits, ray_dt
+
+    def finish(self, cast: tuple) -> FrameScan:
+        """The scan of a :meth:`cast` (waits for its rays)."""
+        i, hits, ray_dt = cast
+        W, B = self.sensor.num_columns, self.sensor.num_beams
+        return self._measure(i, *(np.asarray(h).reshape(W, B) for h in hits), ray_dt)
 
     def _measure(self, i, t, label, refl, cos_inc, col_dt) -> FrameScan:
         """Apply the sensor's error model to true ranges (W, B) and build the point cloud."""
@@ -186,6 +208,13 @@ class SweepSimulator:
         times = np.broadcast_to(col_dt[:, None], r.shape)
         points = np.concatenate([xyz, intensity[..., None]], axis=-1)[keep].astype(np.float32)
         return FrameScan(points, label[keep].astype(np.uint16), times[keep].astype(np.float32))
+
+
+def _rotate_columns(T_cols: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Each column's directions (W, B, 3) rotated by its pose (W, 4, 4) into the world frame.
+
+    A batched matmul, not einsum: the same sums, 3-8x faster on this shape."""
+    return np.matmul(dirs, T_cols[:, :3, :3].transpose(0, 2, 1))
 
 
 def _mixed_pixels(r, hit, rng, prob, gap):
@@ -292,15 +321,16 @@ def write_sequence(
     io.write_calib(seq_dir / "calib.txt", {**P, "Tr": traj.Tr_cam_velo})
     times = traj.frame_times - traj.frame_times[0]
     io.write_atomic(seq_dir / "times.txt", "".join(f"{t:.6e}\n" for t in times))
-    for i in range(traj.num_frames):
+    todo = [
+        i for i in range(traj.num_frames) if not all(map(Path.exists, _frame_paths(seq_dir, i)))
+    ]
+    for i, scan in sim.frames(todo):
         paths = _frame_paths(seq_dir, i)
-        if not all(p.exists() for p in paths):
-            scan = sim.frame(i)
-            io.write_labels(paths[1], scan.labels)
-            buffer = BytesIO()
-            np.save(buffer, scan.times)
-            io.write_atomic(paths[2], buffer.getvalue())
-            io.write_scan_bin(paths[0], scan.points)  # last: its presence marks the frame done
+        io.write_labels(paths[1], scan.labels)
+        buffer = BytesIO()
+        np.save(buffer, scan.times)
+        io.write_atomic(paths[2], buffer.getvalue())
+        io.write_scan_bin(paths[0], scan.points)  # last: its presence marks the frame done
         if progress is not None:
             progress(i)
     counts = [_frame_paths(seq_dir, i)[0].stat().st_size // 16 for i in range(traj.num_frames)]
