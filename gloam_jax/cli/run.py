@@ -123,7 +123,10 @@ def run_odometry(
                                  resume=resume, flush_every=flush_every)  # fmt: skip
     except KeyboardInterrupt as stop:
         written = _frames_written(run_dir)
-        console.print(f"interrupted: {written} frames written to {run_dir}; go on with: {again}")
+        if written:
+            console.print(f"interrupted: {written} frames written to {run_dir}; go on: {again}")
+        else:
+            console.print("interrupted before the first frames were written")
         raise typer.Exit(143 if isinstance(stop, Terminated) else 130) from None
     except InputError:
         if _frames_written(run_dir):
