@@ -38,6 +38,7 @@ from make_tables import commit, window_rte
 
 from gloam_jax import io
 from gloam_jax.config import build_dataclass, load_config, parse_mapping
+from gloam_jax.errors import InputError
 
 PEERS = ("small_gicp", "kiss-icp", "genz-icp", "genz-icp-kitti")
 
@@ -173,6 +174,11 @@ def main() -> None:
         raise SystemExit(f"{json_path}: scored with another --devkit setting; choose another --out")
     results = saved.get("results", {})
     base = load_config("gicp")
+    # Every variant is built before any run, so a bad setting stops at once, not hours in.
+    try:
+        configs = {m: build_dataclass(type(base), v, m, base=base) for m, v in variants.items()}
+    except InputError as e:
+        raise SystemExit(f"--variant: {e}") from None
     for name in args.sequences.split(","):
         seq = io.KittiSequence(args.data, name)
         raw = RawScans(seq)
@@ -191,9 +197,8 @@ def main() -> None:
                 out = run_genz(raw, n, args.threads, preset="kitti")
             elif method == "gicp":
                 out = run_ours(raw, n, base, None, counter)
-            elif method in variants:
-                config = build_dataclass(type(base), variants[method], method, base=base)
-                out = run_ours(raw, n, config, None, counter)
+            elif method in configs:
+                out = run_ours(raw, n, configs[method], None, counter)
             else:
                 raise SystemExit(f"unknown method {method!r}")
             results[key] = score(seq, *out, devkit=args.devkit)
