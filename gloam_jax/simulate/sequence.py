@@ -133,14 +133,14 @@ class SweepSimulator:
         """Simulate the frames ``indices`` in order, each frame's rays cast (asynchronously, by
         XLA's threads) while the one before is measured and returned: the host's work and
         the ray caster's overlap. Yields (index, scan)."""
-        pending = None
+        pending = None  # a cast: (index, rays in flight, column times)
         for i in indices:
             cast = self.cast(i)
             if pending is not None:
-                yield pending[0], self.finish(pending[1])
-            pending = (i, cast)
+                yield pending[0], self.finish(pending)
+            pending = cast
         if pending is not None:
-            yield pending[0], self.finish(pending[1])
+            yield pending[0], self.finish(pending)
 
     def cast(self, i: int) -> tuple:
         """Start casting frame ``i``'s rays; :meth:`finish` turns the result into a scan."""
