@@ -129,9 +129,9 @@ def run_odometry(
             console.print("interrupted before the first frames were written")
         raise typer.Exit(143 if isinstance(stop, Terminated) else 130) from None
     except InputError:
-        if _frames_written(run_dir):
-            console.print(f"{_frames_written(run_dir)} frames written to {run_dir}; after a "
-                          f"fix, or to skip the scan: {again} --on-bad-scan skip")  # fmt: skip
+        if written := _frames_written(run_dir):
+            console.print(f"{written} frames written to {run_dir}; after a fix, or to skip "
+                          f"the scan: {again} --on-bad-scan skip")  # fmt: skip
         raise
     console.print(f"  {result['deskew']['reason']}")
     choice = result["model_choice"]
