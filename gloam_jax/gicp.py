@@ -50,14 +50,16 @@ class GICPConfig:
     translation_eps: float = 1e-3  # and translation update below (m)
     adjoint: Literal["unrolled", "implicit"] = "unrolled"  # differentiation through LM
     # A direction is weak (degenerate) when the scene's constraint along it is below this
-    # fraction of the strongest one's (see registration.conditioning; calibrated in
-    # docs/degeneracy.md); rotations count as their sweep at lever_arm metres.
+    # fraction of the strongest one's and fewer than degeneracy_support planar points face it
+    # (see registration.conditioning; calibrated in docs/degeneracy.md); rotations count as
+    # their sweep at lever_arm metres.
     degeneracy_threshold: float = 4e-3
+    degeneracy_support: float = 3.0
     lever_arm: float = 10.0  # m
 
     def __post_init__(self) -> None:
         for name in ("max_correspondence_distance", "rotation_eps", "translation_eps",
-                     "degeneracy_threshold", "lever_arm"):  # fmt: skip
+                     "degeneracy_threshold", "degeneracy_support", "lever_arm"):  # fmt: skip
             check_setting(is_positive(v := getattr(self, name)), f"gicp.{name}", "positive", v)
         for name in ("num_candidates", "max_iterations"):
             check_setting(is_int(v := getattr(self, name), 1), f"gicp.{name}", "an integer >= 1", v)

@@ -85,9 +85,11 @@ class FrameStatus:
     residual: float = float("nan")
     converged: bool = False
     degenerate: bool = False  # some directions were unconstrained and kept the motion prior
-    # the scene's weakest constraint over its strongest (registration.conditioning), and the
-    # weak directions, each (rho, lever_arm * phi) of unit length
+    # the scene's weakest constraint over its strongest (registration.conditioning), the
+    # planar points facing that direction, and the weak directions, each (rho, lever_arm *
+    # phi) of unit length
     condition: float = float("nan")
+    support: float = float("nan")
     weak_directions: list[list[float]] = field(default_factory=list)
     error: str = ""  # bad input that made the frame fall back on the motion prior
 
@@ -393,7 +395,7 @@ class Odometry:
             status.residual = result.error / result.num_inliers
         status.converged = result.converged
         T, weak = result.T_target_source, result.weak_directions
-        status.condition = result.condition
+        status.condition, status.support = result.condition, round(result.support, 2)
         status.weak_directions = weak.T.round(4).tolist()
         if result.degenerate:
             status.degenerate = True

@@ -75,7 +75,8 @@ class RegistrationResult(NamedTuple):
     ``converged`` says the iterations settled; ``degenerate`` says the scene leaves the answer
     undetermined along ``weak_directions`` (6, m) (a tunnel's or a corridor's axis), in
     coordinates ``(rho, lever_arm * phi)``; ``condition`` is the weakest constraint over the
-    strongest (see :func:`conditioning`)."""
+    strongest and ``support`` the points facing the weakest direction (see
+    :func:`conditioning`)."""
 
     T_target_source: np.ndarray
     converged: bool
@@ -86,20 +87,21 @@ class RegistrationResult(NamedTuple):
     error: float
     condition: float
     weak_directions: np.ndarray
+    support: float
 
     @property
     def degenerate(self) -> bool:
         return self.weak_directions.shape[1] > 0
 
 
-def constraint_matrix(
+def constraint_rows(
     target: PreparedCloud, source: PreparedCloud, T: np.ndarray, max_distance: float
-) -> np.ndarray:
-    """How the scene's surfaces constrain ``T_target_source``: the point-to-plane system
-    (6, 6) over the increment of :func:`gloam_jax.gicp.retract`, each source point paired with
-    its nearest target point within ``max_distance``, weighted by that point's planarity.
+) -> tuple[np.ndarray, np.ndarray]:
+    """How the scene's surfaces constrain ``T_target_source``: point-to-plane rows (N, 6) over
+    the increment of :func:`gloam_jax.gicp.retract`, each source point paired with its nearest
+    target point within ``max_distance``, and their weights (N,), that point's planarity.
 
-    Unlike GICP's own H it carries none of the plane regulariser's in-plane weight, which
+    Unlike GICP's own H they carry none of the plane regulariser's in-plane weight, which
     gives a tunnel's axis as much information as a healthy drive's weakest direction, and the
     planarity weight leaves out the normals of line-like neighbourhoods (sparse scan rings),
     which move with the sensor and would pin it in place.
@@ -114,18 +116,32 @@ def constraint_matrix(
         normals = target.normals[index]
         weight = np.where(found, np.clip(target.planarity[index], 0.0, 1.0), 0.0)
     rows = np.concatenate([normals, np.cross(moved - T[:3, 3], normals)], axis=1)
-    return (rows * weight[:, None]).T @ rows
+    return rows, weight
 
 
-def conditioning(A: np.ndarray, lever_arm: float, threshold: float) -> tuple[float, np.ndarray]:
-    """The weakest over the strongest eigenvalue of the constraint matrix ``A`` (6, 6) (see
-    :func:`constraint_matrix`) in coordinates ``z = (rho, lever_arm * phi)``, both in metres,
-    and the directions below ``threshold`` times the strongest: orthonormal columns (6, m) in
-    those coordinates."""
-    S = np.diag([1.0, 1.0, 1.0, 1.0 / lever_arm, 1.0 / lever_arm, 1.0 / lever_arm])
-    values, vectors = np.linalg.eigh(S @ A @ S)
+def conditioning(
+    rows: np.ndarray, weight: np.ndarray, lever_arm: float, threshold: float, support: float
+) -> tuple[float, np.ndarray, float]:
+    """Which directions the constraint ``rows`` (N, 6) with ``weight`` (N,) (see
+    :func:`constraint_rows`) leave undetermined, in coordinates ``z = (rho, lever_arm * phi)``,
+    both in metres. Returns the condition (the weakest eigenvalue of their system over the
+    strongest), the weak directions (orthonormal columns (6, m)) and the weakest direction's
+    support.
+
+    A direction is weak when its eigenvalue is below ``threshold`` times the strongest and
+    fewer than ``support`` (planarity-weighted) points face it: a row within 60 degrees of it.
+    The eigenvalue alone has a floor from normal noise, each wall point of a tunnel tilting a
+    little towards the axis, at the level of a healthy highway's weakest direction, which
+    real structure (a car's back, a sign, a post) constrains (experiments/highway_degeneracy).
+    """
+    scaled = rows / np.array([1.0, 1.0, 1.0, lever_arm, lever_arm, lever_arm])
+    values, vectors = np.linalg.eigh((scaled * weight[:, None]).T @ scaled)
     strongest = max(values[-1], 1e-300)
-    return float(max(values[0], 0.0) / strongest), vectors[:, values < threshold * strongest]
+    norms = np.maximum(np.linalg.norm(scaled, axis=1, keepdims=True), 1e-300)
+    facing = np.abs(scaled @ vectors) > 0.5 * norms  # (N, 6): cos > 0.5
+    supports = weight @ facing
+    weak = (values < threshold * strongest) & (supports < support)
+    return float(max(values[0], 0.0) / strongest), vectors[:, weak], float(supports[0])
 
 
 def prepare(
@@ -226,10 +242,12 @@ def align_prepared(
         if inliers > 0 and fresh and small and np.linalg.norm(step[:3]) < config.translation_eps:
             converged = True
             break
-    A = constraint_matrix(target, source, T, config.max_correspondence_distance)
-    condition, weak = conditioning(A, config.lever_arm, config.degeneracy_threshold)
+    rows, weight = constraint_rows(target, source, T, config.max_correspondence_distance)
+    condition, weak, support = conditioning(
+        rows, weight, config.lever_arm, config.degeneracy_threshold, config.degeneracy_support
+    )
     return RegistrationResult(
-        T, converged, iterations, int(inliers), H, b, float(error), condition, weak
+        T, converged, iterations, int(inliers), H, b, float(error), condition, weak, support
     )
 
 

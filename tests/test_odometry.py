@@ -142,8 +142,9 @@ def test_degenerate_corridor_is_flagged_and_remapped():
     weak = result.weak_directions
     assert result.degenerate and result.condition < config.degeneracy_threshold
     assert np.linalg.norm(weak[0]) > 0.99  # the corridor's axis, x, lies in the weak directions
-    strong = np.diag([1e5, 2e5, 3e5, 1e7, 2e7, 3e7])
-    assert conditioning(strong, config.lever_arm, config.degeneracy_threshold)[1].shape[1] == 0
+    rows, weights = np.eye(6), np.array([1e5, 2e5, 3e5, 1e7, 2e7, 3e7])  # every axis seen
+    settings = (config.lever_arm, config.degeneracy_threshold, config.degeneracy_support)
+    assert conditioning(rows, weights, *settings)[1].shape[1] == 0
     # Remapping keeps the registration across the corridor and the prior along it.
     prior = np.eye(4)
     prior[:3, 3] = [0.5, 0.0, 0.0]
@@ -151,6 +152,22 @@ def test_degenerate_corridor_is_flagged_and_remapped():
     T = remap(prior, result.T_target_source, np.eye(6)[:, :1], config.lever_arm)
     assert abs(T[0, 3] - 0.5) < 0.01 and abs(T[1, 3] - 0.3) < 0.02
     np.testing.assert_allclose(T[:3, :3], result.T_target_source[:3, :3], atol=1e-3)
+
+
+def test_a_direction_that_real_structure_faces_is_not_weak():
+    """A 2 m board across the corridor: the axis is still weak by the eigenvalue alone (its
+    constraint far below the threshold), but planar points face it, so it is not remapped
+    and the registration finds the motion along it."""
+    rng = np.random.default_rng(2)
+    board = np.c_[np.full(1600, 30.0), rng.uniform(-1, 1, 1600), rng.uniform(1, 3, 1600)]
+    target = prepare(np.vstack([corridor(0), board]))
+    source_points = np.vstack([corridor(1), board]) - [0.7, 0.3, 0.0]
+    source = prepare(source_points[np.abs(source_points[:, 0]) < 90])
+    by_eigenvalue = align_prepared(target, source, None, GICPConfig(degeneracy_support=1e9))
+    result = align_prepared(target, source, None, GICPConfig())
+    x_weak = [np.linalg.norm(r.weak_directions[0]) for r in (by_eigenvalue, result)]
+    assert x_weak[0] > 0.99 and x_weak[1] < 0.01
+    assert abs(result.T_target_source[0, 3] - 0.7) < 0.02
 
 
 def test_bad_scans_fall_back_on_the_motion_prior(sim_sequence):

@@ -5,9 +5,10 @@ and on healthy simulated drives (urban, suburban, highway), and the flag rates p
     python experiments/degeneracy_calibration/calibrate_degeneracy.py --out degeneracy.json
 
 Writes every frame's condition (the weakest over the strongest constraint, see
-``gloam_jax.registration.conditioning``) per scene, and for a grid of thresholds the share of
-frames flagged on each scene; a threshold detects the degenerate scenes (flagged frames, to be
-high) without flagging the healthy ones (to be low). Scans are simulated in memory.
+``gloam_jax.registration.conditioning``) and support (planar points facing the weakest
+direction) per scene, and for a grid of thresholds and supports the share of frames flagged on
+each scene; a setting detects the degenerate scenes (flagged frames, to be high) without
+flagging the healthy ones (to be low). Scans are simulated in memory.
 """
 
 from __future__ import annotations
@@ -32,10 +33,11 @@ from gloam_jax.simulate.degenerate import DEGENERATE_KINDS, degenerate_scene, st
 
 HEALTHY = ("urban", "suburban", "highway")
 THRESHOLDS = (2e-4, 5e-4, 1e-3, 2e-3, 3e-3, 4e-3, 5e-3)
+SUPPORTS = (1.0, 2.0, 3.0, 4.0, 6.0, float("inf"))  # inf: the condition alone
 
 
-def conditions(kind: str, frames: int, seed: int, beams: int, columns: int) -> list[float]:
-    """The condition of every registered frame of one simulated drive."""
+def conditions(kind: str, frames: int, seed: int, beams: int, columns: int) -> list[list[float]]:
+    """The condition and support of every registered frame of one simulated drive."""
     sensor = get_sensor("hdl64", num_beams=beams, num_columns=columns)
     if kind in DEGENERATE_KINDS:
         traj = straight_trajectory(frames, 10.0)
@@ -49,7 +51,7 @@ def conditions(kind: str, frames: int, seed: int, beams: int, columns: int) -> l
     for i in range(frames):
         scan = sim.frame(i)
         odometry.register_frame(scan.points, scan.times, 0.1)
-    return [s.condition for s in odometry.status[1:]]
+    return [[s.condition, s.support] for s in odometry.status[1:]]
 
 
 def main() -> None:
@@ -68,20 +70,26 @@ def main() -> None:
         frames = args.degenerate_frames if kind in DEGENERATE_KINDS else args.healthy_frames
         t0 = time.perf_counter()
         values = conditions(kind, frames, args.seed, args.beams, args.columns)
-        out["scenes"][kind] = {"degenerate": kind in DEGENERATE_KINDS, "conditions": values}
-        print(f"{kind}: {len(values)} frames, condition median {np.median(values):.2e} "
-              f"(min {np.min(values):.2e}, max {np.max(values):.2e}), "
-              f"{time.perf_counter() - t0:.0f} s", flush=True)  # fmt: skip
+        out["scenes"][kind] = {"degenerate": kind in DEGENERATE_KINDS, "frames": values}
+        c, s = np.asarray(values).T
+        print(
+            f"{kind}: {len(values)} frames, condition {c.min():.2e}..{c.max():.2e}, support "
+            f"{s.min():.1f}..{s.max():.1f}, {time.perf_counter() - t0:.0f} s",
+            flush=True,
+        )
         write_atomic(args.out, json.dumps(out, indent=1))
     out["settings"] = vars(args) | {"out": str(args.out)}
+    # The weakest direction decides whether any is weak: (condition, support) of that one.
     out["flag_rates"] = {
-        f"{t:g}": {k: float(np.mean(np.asarray(v["conditions"]) < t))
-                   for k, v in out["scenes"].items()}
-        for t in THRESHOLDS
+        f"{t:g}, {m:g}": {
+            k: float(np.mean([c < t and s < m for c, s in v["frames"]]))
+            for k, v in out["scenes"].items()
+        }
+        for t in THRESHOLDS for m in SUPPORTS
     }  # fmt: skip
     write_atomic(args.out, json.dumps(out, indent=1))
-    for t, rates in out["flag_rates"].items():
-        print(t, "  ".join(f"{k} {100 * r:.0f} %" for k, r in rates.items()))
+    for key, rates in out["flag_rates"].items():
+        print(key, "  ".join(f"{k} {100 * r:.0f} %" for k, r in rates.items()))
 
 
 if __name__ == "__main__":
