@@ -9,6 +9,7 @@ import pytest
 from repo_scripts import import_script
 
 from gloam_jax import metrics
+from gloam_jax.errors import InputError
 from gloam_jax.models import load_model, save_model, shipped_model_path
 from gloam_jax.simulate import simulate
 
@@ -254,3 +255,32 @@ def test_long_splits_score_devkit_lengths_and_tabulate_them_per_length():
     assert record["by_length"]["GLOAM (m)"] == {"100": 0.5, "800": 3.0}
     assert "| GLOAM (m) | 0.500 (-50 %) | 3.000 (+50 %) |" in text
     assert make_tables.by_length_markdown({**record, "split": "val"}) == []
+
+
+def test_ship_model_chooses_the_seed_lowest_against_gicp_and_records_it(tmp_path, capsys):
+    ship = import_script("ship_model")
+    files = [_unscored_model(tmp_path / f"s{i}.npz") for i in range(2)]
+
+    def run(model, data, t401, t403):
+        worlds = {"401": {"t_err": t401}, "403": {"t_err": t403}}
+        return {"model": None if model is None else str(model), "data": data, "worlds": worlds}
+
+    # s0: 0.8 and 1.2 of GICP on draw 0, 0.9 and 0.9 on draw 1: mean 0.95; s1: 0.9 everywhere
+    seeds = [run(files[0], "d0", 0.8, 0.6), run(files[0], "d1", 1.8, 0.9),
+             run(files[1], "d0", 0.9, 0.45), run(files[1], "d1", 1.8, 0.9)]  # fmt: skip
+    runs = {"GICP": [run(None, "d0", 1.0, 0.5), run(None, "d1", 2.0, 1.0)], "GLOAM (a)": seeds}
+    tables = {"split": "val_long", "data": ["d0", "d1"], "commit": "abc", "date": "2026-12-05",
+              "runs": runs}  # fmt: skip
+    path = tmp_path / "tables.json"
+    path.write_text(json.dumps(tables))
+    out = tmp_path / "shipped.npz"
+    argv = [str(path), "--label", "GLOAM (a)", "--worlds", "401,403", "--out", str(out)]
+    ship.main([*argv, "--sensor-name", "hdl64"])
+    assert f"chosen: {files[1]}" in capsys.readouterr().out
+    model = load_model(out)
+    assert model.provenance["selected_on"] == "val_long"
+    assert model.provenance["selected_value"] == pytest.approx(0.9)
+    assert model.provenance["selection"]["files"][str(files[0])] == pytest.approx(0.95)
+    assert {s.name for s in model.sensors} == {"hdl64"}
+    with pytest.raises(InputError, match="no run of world 405"):
+        ship.main([str(path), "--label", "GLOAM (a)", "--worlds", "401,405"])

@@ -1,0 +1,82 @@
+"""Choose a label's training seed on long validation and write it as a shipped model file.
+
+    python scripts/ship_model.py results/long_val_step2/tables.json --label "GLOAM (a)" \\
+        --worlds 401,403,404 --sensor-name hdl64 --out gloam_jax/data/gloam_hdl64.npz
+
+Reads ``make_tables.py --split val_long``'s tables.json. For each of the label's model files,
+its t_err over GICP's on the same world and simulation draw, averaged over ``--worlds`` x the
+draws; the file with the lowest mean is chosen. Prints every file's ratios; with ``--out`` it
+writes the chosen file there with the selection in its provenance (``selected_on``,
+``selected_value``, ``selection``: every file's mean ratio, the worlds, draws and commit) and its
+recorded sensors named ``--sensor-name``. Listing the file in ``models.SHIPPED_MODELS`` is a
+code change of its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from gloam_jax.errors import InputError
+from gloam_jax.io.files import read_text
+from gloam_jax.models import load_model, save_model
+
+
+def seed_ratios(tables: dict, label: str, worlds: list[str]) -> dict[str, dict[str, float]]:
+    """Per model file of ``label``: its t_err over GICP's per (draw, world) cell, ``"data
+    world"`` -> ratio. One line naming what is missing where a cell has no run."""
+    runs = tables["runs"]
+    if label not in runs or "GICP" not in runs:
+        raise InputError(None, f"tables.json has no runs of {label!r} and GICP (has {list(runs)})")
+    gicp = {(r["data"], w): v["t_err"] for r in runs["GICP"] for w, v in r["worlds"].items()}
+    out: dict[str, dict[str, float]] = {}
+    for run in runs[label]:
+        cells = out.setdefault(run["model"], {})
+        for world in worlds:
+            if world not in run["worlds"] or (run["data"], world) not in gicp:
+                raise InputError(None, f"no run of world {world} on {run['data']} for "
+                                 f"{run['model']} and GICP")  # fmt: skip
+            ratio = run["worlds"][world]["t_err"] / gicp[(run["data"], world)]
+            cells[f"{run['data']} {world}"] = ratio
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("tables", type=Path)
+    parser.add_argument("--label", required=True, help='a row of the tables, "GLOAM (a)"')
+    parser.add_argument("--worlds", required=True, help="comma-separated ids")
+    parser.add_argument("--sensor-name", help="name for the file's recorded sensors")
+    parser.add_argument("--out", type=Path, help="write the chosen file here")
+    args = parser.parse_args(argv)
+    tables = json.loads(read_text(args.tables)[0])
+    worlds = args.worlds.split(",")
+    ratios = seed_ratios(tables, args.label, worlds)
+    means = {path: float(np.mean(list(cells.values()))) for path, cells in ratios.items()}
+    for path, cells in ratios.items():
+        detail = ", ".join(f"{k} {v:.3f}" for k, v in cells.items())
+        print(f"{path}: mean t_err / GICP {means[path]:.4f} ({detail})")
+    chosen = min(means, key=means.get)
+    print(f"chosen: {chosen}")
+    if args.out is None:
+        return
+    model = load_model(chosen)
+    selection = {"tables": str(args.tables), "label": args.label, "worlds": worlds,
+                 "data": tables["data"], "commit": tables["commit"], "date": tables["date"],
+                 "files": means}  # fmt: skip
+    provenance = {**model.provenance, "selected_on": tables["split"],
+                  "objective": "mean t_err / GICP", "selected_value": means[chosen],
+                  "validation_gicp": 1.0, "selection": selection}  # fmt: skip
+    sensors = model.sensors
+    if args.sensor_name and sensors is not None:
+        sensors = tuple(dataclasses.replace(s, name=args.sensor_name) for s in sensors)
+    save_model(args.out, dataclasses.replace(model, provenance=provenance, sensors=sensors))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
