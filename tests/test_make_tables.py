@@ -284,3 +284,18 @@ def test_ship_model_chooses_the_seed_lowest_against_gicp_and_records_it(tmp_path
     assert {s.name for s in model.sensors} == {"hdl64"}
     with pytest.raises(InputError, match="no run of world 405"):
         ship.main([str(path), "--label", "GLOAM (a)", "--worlds", "401,405"])
+
+
+def test_model_default_runs_through_the_guard_and_records_no_file(tiny_test_world, tmp_path):
+    """``LABEL=default``: the shipped model that fits each world's sensor, else the guard. This
+    16-beam x 400-column sensor fits no shipped model, so plain GICP runs, to the bit, and no
+    shipped file gets a test score."""
+    before = load_model(shipped_model_path()).provenance
+    out = tmp_path / "out"
+    argv = ["--split", "test", "--sequences", "301", "--data", str(tiny_test_world)]
+    make_tables.main([*argv, "--model", "d=default", "--out", str(out)])
+    rows = [json.loads(next(out.glob(f"{label}/*/*/301/table_metrics.json")).read_text())
+            for label in ("GICP", "GLOAM (d)")]  # fmt: skip
+    assert rows[1]["model_choice"]["decision"] == "guard: gicp"
+    assert rows[1]["t_err"] == rows[0]["t_err"]
+    assert load_model(shipped_model_path()).provenance == before
