@@ -251,8 +251,12 @@ def _expected_shapes(d: int, novelty: bool) -> dict[str, tuple[int, ...]]:
 SHIPPED = "default"
 """The name that :func:`load_model` (and ``--weights``, ``model:`` in configs) resolves to the
 model trained and shipped with the package (``gloam_jax/data/gloam_default.npz``)."""
-# Every shipped model by name: "net" is GLOAM on the net backbone (configs/gloam_net.yaml).
-SHIPPED_MODELS = {SHIPPED: "gloam_default.npz", "net": "gloam_net.npz"}
+# Every shipped model by name, in the order ``model: default`` tries them against the scans'
+# sensor (gloam_jax/guard.py): "hdl64" first (configs/train_hdl64.yaml, chosen on the
+# KITTI-length validation worlds, where it beats the protocol's model on HDL-64 scans), then
+# the protocol's model (HDL-64 and VLP-16); "net" is GLOAM on the net backbone
+# (configs/gloam_net.yaml).
+SHIPPED_MODELS = {"hdl64": "gloam_hdl64.npz", SHIPPED: "gloam_default.npz", "net": "gloam_net.npz"}
 
 
 def shipped_model_path(name: str = SHIPPED) -> Path:

@@ -253,9 +253,9 @@ def test_every_experiment_config_loads_from_its_folder():
 
 
 def test_the_shipped_protocol_configs_are_the_experiments_that_made_the_shipped_models():
-    """configs/train_protocol.yaml and train_protocol_net.yaml are written out in one file each;
-    they resolve to the same settings as the experiment chains that trained the shipped models,
-    and to the settings recorded in those model files."""
+    """configs/train_protocol.yaml, train_protocol_net.yaml and train_hdl64.yaml are written out
+    in one file each; they resolve to the same settings as the experiment chains that trained
+    the shipped models, and to the settings recorded in those model files."""
     from pathlib import Path
 
     from gloam_jax.config import load_config
@@ -266,6 +266,7 @@ def test_the_shipped_protocol_configs_are_the_experiments_that_made_the_shipped_
     pairs = {
         "train_protocol": ("w11_warmup/train_protocol_11_warmup.yaml", "default"),
         "train_protocol_net": ("net_protocol/train_protocol_net_rank_finetune.yaml", "net"),
+        "train_hdl64": ("paper_windows/train_default.yaml", "hdl64"),
     }
     for shipped, (chain, model) in pairs.items():
         config = load_config(shipped, TrainConfig)

@@ -265,3 +265,13 @@ def test_shipped_model_loads_and_says_how_it_was_trained():
     assert prov["selected_value"] < prov["validation_gicp"]
     scores = [s for s in prov["test_scores"] if s["method"] == "gloam"]
     assert scores and set(scores[0]["worlds"]) == ids["test"]
+
+
+def test_shipped_hdl64_model_was_chosen_on_long_validation_among_three_seeds():
+    model = load_model("hdl64")
+    prov = model.provenance
+    assert prov["selected_on"] == "val_long" and prov["objective"] == "mean t_err / GICP"
+    selection = prov["selection"]
+    assert len(selection["files"]) == 3 and selection["worlds"] == ["401", "403", "404"]
+    assert prov["selected_value"] == min(selection["files"].values()) < 1.0
+    assert [s.name for s in model.sensors] == ["hdl64"] and model.sensors[0].rings == 64

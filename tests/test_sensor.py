@@ -95,11 +95,29 @@ def _stub_features(model, k):
     return np.zeros((1000, model.pca.input_dim))
 
 
-def test_default_picks_the_shipped_model_for_real_kitti_scans(real):
+def test_default_picks_the_shipped_hdl64_model_for_real_kitti_scans(real):
     choice = choose(load_config("gloam"), real[:3], _stub_features)
-    assert choice.record["decision"] == "model" and choice.record["model"] == "default"
+    assert choice.record["decision"] == "model" and choice.record["model"] == "hdl64"
     assert choice.config.method == "gloam" and choice.warning is None
-    assert "hdl64" in choice.record["reason"]
+    assert "matches hdl64" in choice.record["reason"]
+    assert choice.model.provenance["selected_on"] == "val_long"
+
+
+@pytest.mark.parametrize(
+    ("signature", "picked"),
+    [
+        (SensorSignature(64, -24.8, 2.0, 120000), "hdl64"),
+        (SensorSignature(16, -15.0, 15.0, 19000), "default"),  # VLP-16: the protocol's model
+        (SensorSignature(32, -30.7, 10.7, 60000), None),  # HDL-32E: no shipped model, guarded
+    ],
+)
+def test_default_picks_a_model_per_sensor(signature, picked, monkeypatch):
+    import gloam_jax.guard as guard
+
+    monkeypatch.setattr(guard, "measure", lambda scans: signature)
+    choice = choose(load_config("gloam"), [np.zeros((10, 4))], _stub_features)
+    assert choice.record["model"] == picked
+    assert choice.config.method == ("gloam" if picked else "gicp")
 
 
 def test_a_run_on_os1_64_scans_runs_the_guard_and_says_so(presets, tmp_path):
