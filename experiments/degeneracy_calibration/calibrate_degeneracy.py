@@ -36,8 +36,10 @@ THRESHOLDS = (2e-4, 5e-4, 1e-3, 2e-3, 3e-3, 4e-3, 5e-3)
 SUPPORTS = (1.0, 2.0, 3.0, 4.0, 6.0, float("inf"))  # inf: the condition alone
 
 
-def conditions(kind: str, frames: int, seed: int, beams: int, columns: int) -> list[list[float]]:
-    """The condition and support of every registered frame of one simulated drive."""
+def drive(kind: str, frames: int, seed: int, beams: int, columns: int,
+          config: OdometryConfig = OdometryConfig()) -> Odometry:  # fmt: skip
+    """The odometry after registering every frame of one simulated drive: a degenerate scene
+    on a straight 10 m/s drive, or a procedural drive of a healthy style."""
     sensor = get_sensor("hdl64", num_beams=beams, num_columns=columns)
     if kind in DEGENERATE_KINDS:
         traj = straight_trajectory(frames, 10.0)
@@ -47,10 +49,16 @@ def conditions(kind: str, frames: int, seed: int, beams: int, columns: int) -> l
         scene = build_scene(traj, kind, seed, mount_height=sensor.mount_height)
     sim = SweepSimulator(scene, traj, sensor, seed, ErrorSwitches())
     sim.plan_padding(np.unique(np.linspace(0, frames - 1, 6).astype(int)))
-    odometry = Odometry(OdometryConfig())
+    odometry = Odometry(config)
     for i in range(frames):
         scan = sim.frame(i)
         odometry.register_frame(scan.points, scan.times, 0.1)
+    return odometry
+
+
+def conditions(kind: str, frames: int, seed: int, beams: int, columns: int) -> list[list[float]]:
+    """The condition and support of every registered frame of one simulated drive."""
+    odometry = drive(kind, frames, seed, beams, columns)
     return [[s.condition, s.support] for s in odometry.status[1:]]
 
 

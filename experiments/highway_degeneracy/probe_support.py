@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,14 +25,11 @@ from gloam_jax.datasets import open_dataset
 from gloam_jax.gicp import GICPConfig
 from gloam_jax.io import write_atomic
 from gloam_jax.odometry import Odometry, OdometryConfig
-from gloam_jax.simulate import (
-    ErrorSwitches,
-    SweepSimulator,
-    build_scene,
-    get_sensor,
-    procedural_trajectory,
-)
-from gloam_jax.simulate.degenerate import DEGENERATE_KINDS, degenerate_scene, straight_trajectory
+from gloam_jax.simulate.degenerate import DEGENERATE_KINDS
+
+# The calibration's drives (the same scenes, seeds and sensors).
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "degeneracy_calibration"))
+from calibrate_degeneracy import drive  # noqa: E402
 
 COSINES = (0.3, 0.5, 0.7, 0.85, 0.95)
 RECORDS: list[dict] = []
@@ -59,20 +57,9 @@ def _recording_conditioning(rows, weight, lever_arm, threshold, support):
 
 
 def run_simulated(kind: str, frames: int, seed: int, beams: int, columns: int) -> list[dict]:
-    sensor = get_sensor("hdl64", num_beams=beams, num_columns=columns)
-    if kind in DEGENERATE_KINDS:
-        traj = straight_trajectory(frames, 10.0)
-        scene = degenerate_scene(kind, traj, sensor.mount_height)
-    else:
-        traj = procedural_trajectory(frames, seed)
-        scene = build_scene(traj, kind, seed, mount_height=sensor.mount_height)
-    sim = SweepSimulator(scene, traj, sensor, seed, ErrorSwitches())
-    sim.plan_padding(np.unique(np.linspace(0, frames - 1, 6).astype(int)))
-    odometry = Odometry(OdometryConfig(gicp=GICPConfig(degeneracy_threshold=1e-9)))
     start = len(RECORDS)
-    for i in range(frames):
-        scan = sim.frame(i)
-        odometry.register_frame(scan.points, scan.times, 0.1)
+    flag_off = OdometryConfig(gicp=GICPConfig(degeneracy_threshold=1e-9))
+    drive(kind, frames, seed, beams, columns, flag_off)
     return RECORDS[start:]
 
 
