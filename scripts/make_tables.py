@@ -171,9 +171,9 @@ TARGETS = (
 )
 
 
-def _t_err_arrays(runs: dict[str, list[dict]], worlds: tuple[str, ...], label: str):
-    """t_err of ``label``'s runs as (model files, seeds, worlds) and GICP's as (seeds, worlds),
-    the seeds in the order of GICP's runs."""
+def t_err_arrays(runs: dict[str, list[dict]], worlds: tuple[str, ...], label: str):
+    """The model files of ``label`` (sorted), t_err of its runs as (model files, seeds, worlds)
+    and GICP's as (seeds, worlds), the seeds in the order of GICP's runs."""
     draws = [r["data"] for r in runs["GICP"]]
     gicp = np.array([[r["worlds"][w]["t_err"] for w in worlds] for r in runs["GICP"]])
     files = sorted({r["model"] for r in runs[label]})
@@ -184,7 +184,7 @@ def _t_err_arrays(runs: dict[str, list[dict]], worlds: tuple[str, ...], label: s
         ]
     if np.isnan(model).any():
         raise SystemExit(f"{label}: not every model file was run on every --data root")
-    return model, gicp
+    return files, model, gicp
 
 
 def gains(record: dict, label: str, resamples: int = 2000, seed: int = 0) -> dict:
@@ -192,7 +192,7 @@ def gains(record: dict, label: str, resamples: int = 2000, seed: int = 0) -> dic
     the gain against GICP (fraction; negative is better), its 95 % bootstrap interval over model
     files and simulation seeds, and the cells more than :data:`WORSE` worse than GICP's."""
     worlds = tuple(record["worlds"])
-    model, gicp = _t_err_arrays(record["runs"], worlds, label)
+    _, model, gicp = t_err_arrays(record["runs"], worlds, label)
     rng = np.random.default_rng(seed)
     f_idx = rng.integers(0, model.shape[0], (resamples, model.shape[0]))
     d_idx = rng.integers(0, model.shape[1], (resamples, model.shape[1]))

@@ -20,6 +20,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from make_tables import t_err_arrays
 
 from gloam_jax.errors import InputError
 from gloam_jax.io.files import read_text
@@ -28,21 +29,21 @@ from gloam_jax.models import load_model, save_model
 
 def seed_ratios(tables: dict, label: str, worlds: list[str]) -> dict[str, dict[str, float]]:
     """Per model file of ``label``: its t_err over GICP's per (draw, world) cell, ``"data
-    world"`` -> ratio. One line naming what is missing where a cell has no run."""
+    world"`` -> ratio (the cells of make_tables' Table III). One line naming what is missing
+    where a cell has no run."""
     runs = tables["runs"]
     if label not in runs or "GICP" not in runs:
         raise InputError(None, f"tables.json has no runs of {label!r} and GICP (has {list(runs)})")
-    gicp = {(r["data"], w): v["t_err"] for r in runs["GICP"] for w, v in r["worlds"].items()}
-    out: dict[str, dict[str, float]] = {}
-    for run in runs[label]:
-        cells = out.setdefault(run["model"], {})
-        for world in worlds:
-            if world not in run["worlds"] or (run["data"], world) not in gicp:
-                raise InputError(None, f"no run of world {world} on {run['data']} for "
-                                 f"{run['model']} and GICP")  # fmt: skip
-            ratio = run["worlds"][world]["t_err"] / gicp[(run["data"], world)]
-            cells[f"{run['data']} {world}"] = ratio
-    return out
+    for run in runs["GICP"] + runs[label]:
+        missing = [w for w in worlds if w not in run["worlds"]]
+        if missing:
+            raise InputError(None, f"no run of world {missing[0]} on {run['data']} for "
+                             f"{run['model'] or 'GICP'}")  # fmt: skip
+    files, model, gicp = t_err_arrays(runs, tuple(worlds), label)
+    ratio = model / gicp[None]
+    draws = [r["data"] for r in runs["GICP"]]
+    cells = [(j, k, f"{d} {w}") for j, d in enumerate(draws) for k, w in enumerate(worlds)]
+    return {f: {name: float(ratio[i, j, k]) for j, k, name in cells} for i, f in enumerate(files)}
 
 
 def main(argv: list[str] | None = None) -> None:

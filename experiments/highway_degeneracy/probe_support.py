@@ -38,10 +38,10 @@ _conditioning = reg.conditioning
 
 def _recording_conditioning(rows, weight, lever_arm, threshold, support):
     """registration.conditioning, recording the candidate measures of its rows."""
-    rows = rows / np.array([1.0, 1.0, 1.0, lever_arm, lever_arm, lever_arm])
-    values, vectors = np.linalg.eigh((rows * weight[:, None]).T @ rows)
+    scaled = rows / np.array([1.0, 1.0, 1.0, lever_arm, lever_arm, lever_arm])
+    values, vectors = np.linalg.eigh((scaled * weight[:, None]).T @ scaled)
     v = vectors[:, 0]
-    proj = np.abs(rows @ v) / np.maximum(np.linalg.norm(rows, axis=1), 1e-12)
+    proj = np.abs(scaled @ v) / np.maximum(np.linalg.norm(scaled, axis=1), 1e-12)
     RECORDS.append(
         {
             "condition": float(max(values[0], 0) / values[-1]),
@@ -51,9 +51,7 @@ def _recording_conditioning(rows, weight, lever_arm, threshold, support):
             "v": np.round(v, 3).tolist(),
         }
     )
-    return _conditioning(
-        rows * np.r_[1, 1, 1, [lever_arm] * 3], weight, lever_arm, threshold, support
-    )
+    return _conditioning(rows, weight, lever_arm, threshold, support)
 
 
 def run_simulated(kind: str, frames: int, seed: int, beams: int, columns: int) -> list[dict]:
