@@ -190,14 +190,15 @@ class RosbagDataset(Dataset):
             self.topic = choose_topic(reader, topic, path)
             for i, msg in topic_messages(reader, self.topic):
                 stamps.append(msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec)
+                field = time_field(msg)
                 if i == 0:
-                    first, self._time_field = msg, time_field(msg)
+                    first, self._time_field = msg, field
                 try:
                     point_dtype(msg, self.scan_path(i))
-                    if time_field(msg) != self._time_field:  # deskewing needs every scan's
+                    if field != self._time_field:  # deskewing needs every scan's
                         raise InputError(
                             self.scan_path(i),
-                            f"per-point time field {time_field(msg) or 'none'}, unlike the "
+                            f"per-point time field {field or 'none'}, unlike the "
                             f"first message's {self._time_field or 'none'}",
                         )
                 except InputError as err:
