@@ -49,9 +49,6 @@ class OdometryConfig:
     keyframe_distance: float = 2.0  # m between keyframes
     keyframe_angle_deg: float = 15.0
     max_keyframes: int = 10  # local map size
-    # Padded sizes (and so JAX compilations) may grow during these first frames only; later
-    # scans with more points than their padded size are thinned evenly to fit it.
-    warmup_frames: int = 20
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     gicp: GICPConfig = field(default_factory=GICPConfig)
 
@@ -61,14 +58,17 @@ class OdometryConfig:
         "degeneracy_threshold": "gicp.degeneracy_threshold",
         "lever_arm": "gicp.lever_arm",
     }
+    # Keys that no longer do anything, with why: old files, and the config.yaml of old run
+    # folders that --resume reads, still load (the key is ignored).
+    RETIRED: ClassVar[dict[str, str]] = {
+        "warmup_frames": "padded sizes grow with the scans all run long, nothing is thinned",
+    }
 
     def __post_init__(self) -> None:
         for name in ("keyframe_distance", "keyframe_angle_deg"):
             check_setting(is_positive(v := getattr(self, name)), name, "positive", v)
         check_setting(is_int(self.max_keyframes, 1), "max_keyframes", "an integer >= 1",
                       self.max_keyframes)  # fmt: skip
-        check_setting(is_int(self.warmup_frames, 0), "warmup_frames", "an integer >= 0",
-                      self.warmup_frames)  # fmt: skip
 
 
 @dataclass
@@ -77,7 +77,9 @@ class FrameStatus:
 
     num_points: int = 0  # after cleaning, cropping and downsampling
     num_dropped: int = 0  # NaN / inf points removed
-    num_thinned: int = 0  # points left out to fit the padded size fixed after the warm-up
+    # Points left out to fit a padded size: always 0, as padded sizes grow with the scans; kept
+    # for the reports that count it (metrics.json thinned_points) and older frames.json files.
+    num_thinned: int = 0
     iterations: int = 0
     num_inliers: int = 0
     # GICP's cost per inlier at the solution (mean squared whitened residual): how well the
@@ -109,7 +111,6 @@ class LocalMap:
         # in the world frame; features None for methods without learned association
         self.keyframes: list[dict[str, np.ndarray | None]] = []
         self.last_pose: np.ndarray | None = None
-        self.size = 0  # rows of the padded map
         self._merged: PreparedCloud | None = None
         self._pending: Future | None = None
         # One worker: merges run in the order of their keyframes.
@@ -130,16 +131,23 @@ class LocalMap:
         """The map of ``keyframes`` (world-frame columns, oldest first; the last ``max_keyframes``
         kept), the newest taken at ``last_pose`` (4, 4)."""
         self.keyframes = keyframes[-self.max_keyframes :]
-        # Padding the map to its capacity once full, keyframes at the scans' padded size, keeps
-        # its shape, and so the solver's, fixed. Sized here: StickyBuckets is not thread-safe.
-        largest = max(len(k["points"]) for k in self.keyframes)
-        self.size = self.max_keyframes * self.buckets("scan", largest)
+        # The scans' size holds every keyframe (they were scans); grown here for keyframes from
+        # elsewhere. Sized on this thread, not the worker's: StickyBuckets is not thread-safe.
+        self.buckets("scan", max(len(k["points"]) for k in self.keyframes))
         self._pending = self._worker.submit(_merge, list(self.keyframes), self.size)
         self.last_pose = last_pose
 
+    @property
+    def size(self) -> int:
+        """Rows of the padded map (0 before the first keyframe): its capacity at the scans'
+        current padded size. It follows that size as it grows, so each scan bucket pairs with
+        one map shape: the solver compiles once per bucket, and a restored map is padded as
+        the run that saved it had it (bit-exact resumes)."""
+        return self.max_keyframes * self.buckets.floor("scan") if self.keyframes else 0
+
     def clear(self) -> None:
         """No keyframes (a merge still running is left to finish unread)."""
-        self.keyframes, self.last_pose, self.size = [], None, 0
+        self.keyframes, self.last_pose = [], None
         self._merged = self._pending = None
 
     @property
@@ -151,7 +159,8 @@ class LocalMap:
 
 
 def _merge(keyframes: list[dict], size: int) -> PreparedCloud:
-    """One prepared cloud of world-frame keyframes, its device arrays padded to ``size``."""
+    """One prepared cloud of world-frame keyframes, its device arrays padded to ``size`` (the
+    map's size when merged; a scan bucket grown since pads it again on first use)."""
     merged = {
         k: None if keyframes[0][k] is None else np.concatenate([f[k] for f in keyframes])
         for k in keyframes[0]
@@ -236,7 +245,7 @@ class Odometry:
     ) -> tuple[np.ndarray, np.ndarray | None]:
         if velocity is None and self.poses:
             velocity = self._velocity(frame_dt)
-        points, pca, status.num_dropped, status.num_thinned = preprocess_scan(
+        points, pca, status.num_dropped = preprocess_scan(
             scan,
             times,
             self.config.preprocess,
@@ -292,14 +301,13 @@ class Odometry:
         next frames exactly as this one would."""
         if not self.poses or not self.resumable:
             raise ValueError("no frames, or the first frames are not final yet (see resumable)")
-        floors, frozen = self.buckets.state()
+        floors = self.buckets.state()
         state = {
             "poses": np.stack(self.poses),
             "velocity": self.velocity,
             "velocity_dt": np.float64(self.velocity_dt),
             "bucket_roles": np.array(list(floors), dtype=str),
             "bucket_sizes": np.array(list(floors.values()), dtype=np.int64),
-            "buckets_frozen": np.bool_(frozen),
         }
         clouds = {f"keyframe{j}": k for j, k in enumerate(self.map.keyframes)}
         if self.previous is not None and self.config.mode == "frame_to_frame":
@@ -321,7 +329,8 @@ class Odometry:
         self.velocity_dt = float(state["velocity_dt"])
         roles, sizes = state["bucket_roles"].tolist(), state["bucket_sizes"].tolist()
         floors = dict(zip(roles, sizes, strict=True))
-        self.buckets.restore(floors, bool(state["buckets_frozen"]))
+        # Older states also say "buckets_frozen": ignored, as sizes now grow all run long.
+        self.buckets.restore(floors)
         self._start = []
 
         def columns(name: str) -> dict[str, np.ndarray | None]:
@@ -358,8 +367,6 @@ class Odometry:
         """One frame, deskewed with ``velocity`` (default: the current one; none for the
         first frame)."""
         cfg, status = self.config, FrameStatus()
-        if len(self.poses) == cfg.warmup_frames:
-            self.buckets.freeze()
         T_pred = self._predict(frame_dt)
         if scan is None:
             status.error = source
