@@ -15,6 +15,7 @@ the times) is predicted over its whole gap.
 
 from __future__ import annotations
 
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import ClassVar, Literal
@@ -31,6 +32,7 @@ from gloam_jax.models import GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
 from gloam_jax.preprocess import PreprocessConfig, preprocess_scan
 from gloam_jax.registration import PreparedCloud, align_prepared, build_cloud
+from gloam_jax.timing import StageTimer
 
 
 @dataclass(frozen=True)
@@ -94,6 +96,9 @@ class FrameStatus:
     support: float = float("nan")
     weak_directions: list[list[float]] = field(default_factory=list)
     error: str = ""  # bad input that made the frame fall back on the motion prior
+    # Wall-clock ms per stage spent on this frame (gloam_jax.timing.STAGES): a measurement,
+    # not a result. Frame 1's include redoing frames 0 and 1 (Odometry._redo_start).
+    stage_ms: dict[str, float] = field(default_factory=dict)
 
 
 class LocalMap:
@@ -213,6 +218,9 @@ class Odometry:
             self.learned.eigenvalue is not None
         )
         self._threads = ThreadpoolController()
+        # The stages of the frame in progress; a caller adds its own (load, features) before
+        # register_frame, which files them with the frame's status.
+        self.timer = StageTimer()
         self.poses: list[np.ndarray] = []
         self.status: list[FrameStatus] = []
         self.velocity = np.zeros(6)  # se(3) motion over the last frame interval
@@ -271,18 +279,24 @@ class Odometry:
         ``features`` (N, D): the backbone's, for the learned methods.
         Returns ``T_world_lidar`` (4, 4). Bad scans fall back on the motion prior; so does
         ``scan`` None, a scan that could not be read (``source`` then says why)."""
+        start = time.perf_counter()
         if not is_positive(frame_dt):
+            self.timer.take()
             raise InputError(source, f"frame_dt must be a positive time step (s), not {frame_dt!r}")
         # A frame's NumPy products are thin ((N, 3) @ (3, 3), (N, D) @ (D, 6)): threaded BLAS
         # only fights XLA's and the k-d tree's threads for the cores.
-        with self._threads.limit(limits=1, user_api="blas"):
-            inputs = (scan, times, frame_dt, source, features)
-            if len(self.poses) < 2 and self.config.preprocess.deskew != "off":
-                self._start.append(inputs)
-            T = self._register(*inputs)
-            if len(self.poses) == 2 and self._start:
-                T = self._redo_start()
-            return T
+        try:
+            with self._threads.limit(limits=1, user_api="blas"):
+                inputs = (scan, times, frame_dt, source, features)
+                if len(self.poses) < 2 and self.config.preprocess.deskew != "off":
+                    self._start.append(inputs)
+                T = self._register(*inputs)
+                if len(self.poses) == 2 and self._start:
+                    T = self._redo_start()
+        finally:  # a frame that raised leaves no stages to the next
+            stage_ms = self.timer.take(1e3 * (time.perf_counter() - start))
+        self.status[-1].stage_ms = stage_ms
+        return T
 
     # The columns of a prepared cloud that a state keeps (the k-d tree is rebuilt from them).
     _COLUMNS: ClassVar[tuple[str, ...]] = ("points", "covs", "features", "normals", "planarity")
@@ -353,12 +367,15 @@ class Odometry:
         frame 1's pose."""
         start, velocity = self._start, self.velocity
         self._start = []
+        stage_ms = [s.stage_ms for s in self.status]  # as first measured; frame 1's is pending
         # As at the first pass but for the deskew: the same motion prior (none) for frame 1.
         self.poses, self.status, self.previous, self.velocity = [], [], None, np.zeros(6)
         self.velocity_dt = 1.0
         self.map.clear()
         for inputs in start:
             T = self._register(*inputs, velocity=velocity)
+        for status, ms in zip(self.status, stage_ms, strict=True):
+            status.stage_ms = ms
         return T
 
     def _register(
@@ -366,7 +383,7 @@ class Odometry:
     ) -> np.ndarray:
         """One frame, deskewed with ``velocity`` (default: the current one; none for the
         first frame)."""
-        cfg, status = self.config, FrameStatus()
+        cfg, status, timer = self.config, FrameStatus(), self.timer
         T_pred = self._predict(frame_dt)
         if scan is None:
             status.error = source
@@ -374,20 +391,21 @@ class Odometry:
         if self.needs_features and features is None:
             raise InputError(source, f"method '{cfg.method}' needs per-point features")
         try:
-            points, pca = self._preprocess(
-                scan, times, frame_dt, status, source, features, velocity
-            )
+            with timer("preprocess"):
+                points, pca = self._preprocess(
+                    scan, times, frame_dt, status, source, features, velocity
+                )
             scan_size = self.buckets("scan", len(points))
             prep = cfg.preprocess
-            cloud = build_cloud(
-                points, prep.num_neighbors, prep.regularizer, source, scan_size, pca, self.learned
-            )
+            cloud = build_cloud(points, prep.num_neighbors, prep.regularizer, source, scan_size,
+                                pca, self.learned, timer=timer)  # fmt: skip
         except InputError as err:
             status.error = str(err)
             return self._accept(T_pred, None, status, frame_dt)
         status.num_points = len(cloud.points)
         # Taken only now: the map's merge ran beside this frame's preprocessing.
-        target = self.previous if cfg.mode == "frame_to_frame" else self.map.cloud
+        with timer("map"):
+            target = self.previous if cfg.mode == "frame_to_frame" else self.map.cloud
         if target is None:  # first usable scan (earlier ones, if any, were bad): it anchors
             return self._accept(T_pred, cloud, status, frame_dt)
         # Registration in the target's frame: the previous scan's, or the world (local map).
@@ -396,7 +414,7 @@ class Odometry:
             prior = np.asarray(geo.se3_exp_jit(self._velocity(frame_dt)), dtype=np.float64)
         else:
             T_world_target, sizes, prior = np.eye(4), (scan_size, self.map.size), T_pred
-        result = align_prepared(target, cloud, prior, cfg.gicp, sizes)
+        result = align_prepared(target, cloud, prior, cfg.gicp, sizes, timer=timer)
         status.iterations, status.num_inliers = result.iterations, result.num_inliers
         if result.num_inliers:  # without inliers the fit is unknown, not perfect
             status.residual = result.error / result.num_inliers
@@ -420,8 +438,9 @@ class Odometry:
         self.status.append(status)
         if cloud is not None:
             self.previous = cloud
-            if self.config.mode == "frame_to_model" and _needs_keyframe(
-                self.map.last_pose, T, self.config
-            ):
-                self.map.add(cloud, T)
+            with self.timer("map"):
+                if self.config.mode == "frame_to_model" and _needs_keyframe(
+                    self.map.last_pose, T, self.config
+                ):
+                    self.map.add(cloud, T)
         return T

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from gloam_jax.gicp import GICPConfig
 from gloam_jax.odometry import Odometry, OdometryConfig, remap
 from gloam_jax.preprocess import azimuth_times, deskew, preprocess_scan
 from gloam_jax.registration import align_prepared, conditioning, prepare
+from gloam_jax.timing import STAGES
 
 
 def test_azimuth_times_match_the_simulated_timestamps(sim_sequence):
@@ -87,6 +89,34 @@ def test_the_residual_reports_how_well_a_scan_fits(sim_sequence):
     assert residuals[1] > 1.2 * residuals[0]  # 1.45 on this drive
 
 
+def test_each_frame_records_where_its_time_went(sim_sequence):
+    """FrameStatus.stage_ms: every stage, none negative, adding up to the frame's wall time
+    (the caller's load, then register_frame's stages and the rest as ``other``); frame 0
+    keeps its own through the redo of frames 0 and 1, and solves nothing. A frame that
+    raises leaves no time to the next."""
+    seq = io.KittiSequence(sim_sequence, "00")
+    odometry, walls = Odometry(OdometryConfig()), []
+    for i in range(5):
+        t0 = time.perf_counter()
+        with odometry.timer("load"):
+            scan, times = seq.scan(i), seq.point_times(i)
+        odometry.register_frame(scan, times, 0.1)
+        walls.append(1e3 * (time.perf_counter() - t0))
+    for k, (status, wall) in enumerate(zip(odometry.status, walls, strict=True)):
+        ms = status.stage_ms
+        assert tuple(ms) == STAGES and min(ms.values()) >= 0, (k, ms)
+        assert ms["load"] > 0 and ms["features"] == 0, (k, ms)  # gicp: no backbone
+        # each stage rounded to 0.01 ms; outside them only the loop's own few statements
+        assert wall - 1.0 - 0.02 * wall < sum(ms.values()) < wall + 0.05, (k, wall, ms)
+        assert (ms["solve"] > 0) == (k > 0) and ms["neighbours"] > 0 and ms["preprocess"] > 0
+    with odometry.timer("load"):
+        time.sleep(0.05)
+    with pytest.raises(InputError, match="frame_dt must be a positive time step"):
+        odometry.register_frame(seq.scan(5), seq.point_times(5), 0.0)
+    odometry.register_frame(seq.scan(5), seq.point_times(5), 0.1)
+    assert odometry.status[-1].stage_ms["load"] == 0
+
+
 def test_frame_to_frame_mode_runs(sim_sequence):
     seq = io.KittiSequence(sim_sequence, "00")
     odometry = Odometry(OdometryConfig(mode="frame_to_frame"))
@@ -119,9 +149,9 @@ def test_a_denser_scan_moves_up_a_bucket_with_all_its_points(sim_sequence, monke
     denser, denser_times = np.vstack([scan, scan + up, scan - up]), np.tile(seq.point_times(3), 3)
     pairs = set()  # the (source, target) rows of every registration
 
-    def recording(target, source, prior, config, sizes):
+    def recording(target, source, prior, config, sizes, **kw):
         pairs.add(sizes)
-        return align_prepared(target, source, prior, config, sizes)
+        return align_prepared(target, source, prior, config, sizes, **kw)
 
     monkeypatch.setattr("gloam_jax.odometry.align_prepared", recording)
     odometry, floors = Odometry(OdometryConfig()), []
@@ -408,9 +438,13 @@ def test_a_restored_state_registers_the_next_frames_exactly(sim_sequence, tmp_pa
     for i in range(6, 10):
         resumed.register_frame(*frame(i), 0.1)
     np.testing.assert_array_equal(np.stack(resumed.poses), np.stack(whole.poses))
-    assert json.dumps([dataclasses.asdict(s) for s in resumed.status]) == json.dumps(
-        [dataclasses.asdict(s) for s in whole.status]
-    )
+
+    def results(statuses):  # all but the stage times, measurements that differ run to run
+        return json.dumps([dataclasses.asdict(s) | {"stage_ms": None} for s in statuses])
+
+    assert results(resumed.status) == results(whole.status)
+    restored = [s.stage_ms for s in resumed.status[:6]]
+    assert restored == [s.stage_ms for s in whole.status[:6]] and all(restored)
     fresh = Odometry(config)
     fresh.register_frame(seq.scan(0), seq.point_times(0), 0.1)
     with pytest.raises(ValueError, match="not final yet"):  # frames 0 and 1 wait for a redo
