@@ -3,7 +3,8 @@
 An odometry YAML file holds the fields of :class:`~gloam_jax.odometry.OdometryConfig`, with the
 scan preparation under ``preprocess:`` and the GICP ones under ``gicp:``; a training one those
 of :class:`~gloam_jax.training.config.TrainConfig`. Unknown keys and wrongly typed values are
-errors naming the file; keys that moved into a section name their new place. A section left
+errors naming the file; keys that moved into a section name their new place, and retired
+keys (a class's ``RETIRED``, settings that no longer do anything) are ignored. A section left
 out, or given in part, keeps the defaults of its parent (e.g. ``batch.gicp`` its 5
 candidates). The files in ``configs/`` ship inside the package: :func:`load_config` takes
 their name (``gloam``) as well as a path.
@@ -41,6 +42,7 @@ def build_dataclass(cls, values: dict[str, Any], source: str, prefix: str = "", 
     moved = getattr(cls, "MOVED", {})
     for key in sorted(set(values) & set(moved)):
         raise InputError(source, f"setting '{prefix}{key}' moved to '{prefix}{moved[key]}'")
+    values = {k: v for k, v in values.items() if k not in getattr(cls, "RETIRED", {})}
     unknown = sorted(set(values) - names)
     if unknown:
         raise InputError(source, f"unknown setting '{prefix}{unknown[0]}'; known: {sorted(names)}")

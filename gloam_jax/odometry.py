@@ -15,6 +15,7 @@ the times) is predicted over its whole gap.
 
 from __future__ import annotations
 
+import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import ClassVar, Literal
@@ -31,6 +32,7 @@ from gloam_jax.models import GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
 from gloam_jax.preprocess import PreprocessConfig, preprocess_scan
 from gloam_jax.registration import PreparedCloud, align_prepared, build_cloud
+from gloam_jax.timing import StageTimer
 
 
 @dataclass(frozen=True)
@@ -49,9 +51,6 @@ class OdometryConfig:
     keyframe_distance: float = 2.0  # m between keyframes
     keyframe_angle_deg: float = 15.0
     max_keyframes: int = 10  # local map size
-    # Padded sizes (and so JAX compilations) may grow during these first frames only; later
-    # scans with more points than their padded size are thinned evenly to fit it.
-    warmup_frames: int = 20
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     gicp: GICPConfig = field(default_factory=GICPConfig)
 
@@ -61,14 +60,17 @@ class OdometryConfig:
         "degeneracy_threshold": "gicp.degeneracy_threshold",
         "lever_arm": "gicp.lever_arm",
     }
+    # Keys that no longer do anything, with why: old files, and the config.yaml of old run
+    # folders that --resume reads, still load (the key is ignored).
+    RETIRED: ClassVar[dict[str, str]] = {
+        "warmup_frames": "padded sizes grow with the scans all run long, nothing is thinned",
+    }
 
     def __post_init__(self) -> None:
         for name in ("keyframe_distance", "keyframe_angle_deg"):
             check_setting(is_positive(v := getattr(self, name)), name, "positive", v)
         check_setting(is_int(self.max_keyframes, 1), "max_keyframes", "an integer >= 1",
                       self.max_keyframes)  # fmt: skip
-        check_setting(is_int(self.warmup_frames, 0), "warmup_frames", "an integer >= 0",
-                      self.warmup_frames)  # fmt: skip
 
 
 @dataclass
@@ -77,7 +79,9 @@ class FrameStatus:
 
     num_points: int = 0  # after cleaning, cropping and downsampling
     num_dropped: int = 0  # NaN / inf points removed
-    num_thinned: int = 0  # points left out to fit the padded size fixed after the warm-up
+    # Points left out to fit a padded size: always 0, as padded sizes grow with the scans; kept
+    # for the reports that count it (metrics.json thinned_points) and older frames.json files.
+    num_thinned: int = 0
     iterations: int = 0
     num_inliers: int = 0
     # GICP's cost per inlier at the solution (mean squared whitened residual): how well the
@@ -92,6 +96,9 @@ class FrameStatus:
     support: float = float("nan")
     weak_directions: list[list[float]] = field(default_factory=list)
     error: str = ""  # bad input that made the frame fall back on the motion prior
+    # Wall-clock ms per stage spent on this frame (gloam_jax.timing.STAGES): a measurement,
+    # not a result. Frame 1's include redoing frames 0 and 1 (Odometry._redo_start).
+    stage_ms: dict[str, float] = field(default_factory=dict)
 
 
 class LocalMap:
@@ -109,7 +116,6 @@ class LocalMap:
         # in the world frame; features None for methods without learned association
         self.keyframes: list[dict[str, np.ndarray | None]] = []
         self.last_pose: np.ndarray | None = None
-        self.size = 0  # rows of the padded map
         self._merged: PreparedCloud | None = None
         self._pending: Future | None = None
         # One worker: merges run in the order of their keyframes.
@@ -130,16 +136,23 @@ class LocalMap:
         """The map of ``keyframes`` (world-frame columns, oldest first; the last ``max_keyframes``
         kept), the newest taken at ``last_pose`` (4, 4)."""
         self.keyframes = keyframes[-self.max_keyframes :]
-        # Padding the map to its capacity once full, keyframes at the scans' padded size, keeps
-        # its shape, and so the solver's, fixed. Sized here: StickyBuckets is not thread-safe.
-        largest = max(len(k["points"]) for k in self.keyframes)
-        self.size = self.max_keyframes * self.buckets("scan", largest)
+        # The scans' size holds every keyframe (they were scans); grown here for keyframes from
+        # elsewhere. Sized on this thread, not the worker's: StickyBuckets is not thread-safe.
+        self.buckets("scan", max(len(k["points"]) for k in self.keyframes))
         self._pending = self._worker.submit(_merge, list(self.keyframes), self.size)
         self.last_pose = last_pose
 
+    @property
+    def size(self) -> int:
+        """Rows of the padded map (0 before the first keyframe): its capacity at the scans'
+        current padded size. It follows that size as it grows, so each scan bucket pairs with
+        one map shape: the solver compiles once per bucket, and a restored map is padded as
+        the run that saved it had it (bit-exact resumes)."""
+        return self.max_keyframes * self.buckets.floor("scan") if self.keyframes else 0
+
     def clear(self) -> None:
         """No keyframes (a merge still running is left to finish unread)."""
-        self.keyframes, self.last_pose, self.size = [], None, 0
+        self.keyframes, self.last_pose = [], None
         self._merged = self._pending = None
 
     @property
@@ -151,7 +164,8 @@ class LocalMap:
 
 
 def _merge(keyframes: list[dict], size: int) -> PreparedCloud:
-    """One prepared cloud of world-frame keyframes, its device arrays padded to ``size``."""
+    """One prepared cloud of world-frame keyframes, its device arrays padded to ``size`` (the
+    map's size when merged; a scan bucket grown since pads it again on first use)."""
     merged = {
         k: None if keyframes[0][k] is None else np.concatenate([f[k] for f in keyframes])
         for k in keyframes[0]
@@ -204,6 +218,9 @@ class Odometry:
             self.learned.eigenvalue is not None
         )
         self._threads = ThreadpoolController()
+        # The stages of the frame in progress; a caller adds its own (load, features) before
+        # register_frame, which files them with the frame's status.
+        self.timer = StageTimer()
         self.poses: list[np.ndarray] = []
         self.status: list[FrameStatus] = []
         self.velocity = np.zeros(6)  # se(3) motion over the last frame interval
@@ -236,7 +253,7 @@ class Odometry:
     ) -> tuple[np.ndarray, np.ndarray | None]:
         if velocity is None and self.poses:
             velocity = self._velocity(frame_dt)
-        points, pca, status.num_dropped, status.num_thinned = preprocess_scan(
+        points, pca, status.num_dropped = preprocess_scan(
             scan,
             times,
             self.config.preprocess,
@@ -262,18 +279,24 @@ class Odometry:
         ``features`` (N, D): the backbone's, for the learned methods.
         Returns ``T_world_lidar`` (4, 4). Bad scans fall back on the motion prior; so does
         ``scan`` None, a scan that could not be read (``source`` then says why)."""
+        start = time.perf_counter()
         if not is_positive(frame_dt):
+            self.timer.take()
             raise InputError(source, f"frame_dt must be a positive time step (s), not {frame_dt!r}")
         # A frame's NumPy products are thin ((N, 3) @ (3, 3), (N, D) @ (D, 6)): threaded BLAS
         # only fights XLA's and the k-d tree's threads for the cores.
-        with self._threads.limit(limits=1, user_api="blas"):
-            inputs = (scan, times, frame_dt, source, features)
-            if len(self.poses) < 2 and self.config.preprocess.deskew != "off":
-                self._start.append(inputs)
-            T = self._register(*inputs)
-            if len(self.poses) == 2 and self._start:
-                T = self._redo_start()
-            return T
+        try:
+            with self._threads.limit(limits=1, user_api="blas"):
+                inputs = (scan, times, frame_dt, source, features)
+                if len(self.poses) < 2 and self.config.preprocess.deskew != "off":
+                    self._start.append(inputs)
+                T = self._register(*inputs)
+                if len(self.poses) == 2 and self._start:
+                    T = self._redo_start()
+        finally:  # a frame that raised leaves no stages to the next
+            stage_ms = self.timer.take(1e3 * (time.perf_counter() - start))
+        self.status[-1].stage_ms = stage_ms
+        return T
 
     # The columns of a prepared cloud that a state keeps (the k-d tree is rebuilt from them).
     _COLUMNS: ClassVar[tuple[str, ...]] = ("points", "covs", "features", "normals", "planarity")
@@ -292,14 +315,13 @@ class Odometry:
         next frames exactly as this one would."""
         if not self.poses or not self.resumable:
             raise ValueError("no frames, or the first frames are not final yet (see resumable)")
-        floors, frozen = self.buckets.state()
+        floors = self.buckets.state()
         state = {
             "poses": np.stack(self.poses),
             "velocity": self.velocity,
             "velocity_dt": np.float64(self.velocity_dt),
             "bucket_roles": np.array(list(floors), dtype=str),
             "bucket_sizes": np.array(list(floors.values()), dtype=np.int64),
-            "buckets_frozen": np.bool_(frozen),
         }
         clouds = {f"keyframe{j}": k for j, k in enumerate(self.map.keyframes)}
         if self.previous is not None and self.config.mode == "frame_to_frame":
@@ -321,7 +343,8 @@ class Odometry:
         self.velocity_dt = float(state["velocity_dt"])
         roles, sizes = state["bucket_roles"].tolist(), state["bucket_sizes"].tolist()
         floors = dict(zip(roles, sizes, strict=True))
-        self.buckets.restore(floors, bool(state["buckets_frozen"]))
+        # Older states also say "buckets_frozen": ignored, as sizes now grow all run long.
+        self.buckets.restore(floors)
         self._start = []
 
         def columns(name: str) -> dict[str, np.ndarray | None]:
@@ -344,12 +367,15 @@ class Odometry:
         frame 1's pose."""
         start, velocity = self._start, self.velocity
         self._start = []
+        stage_ms = [s.stage_ms for s in self.status]  # as first measured; frame 1's is pending
         # As at the first pass but for the deskew: the same motion prior (none) for frame 1.
         self.poses, self.status, self.previous, self.velocity = [], [], None, np.zeros(6)
         self.velocity_dt = 1.0
         self.map.clear()
         for inputs in start:
             T = self._register(*inputs, velocity=velocity)
+        for status, ms in zip(self.status, stage_ms, strict=True):
+            status.stage_ms = ms
         return T
 
     def _register(
@@ -357,9 +383,7 @@ class Odometry:
     ) -> np.ndarray:
         """One frame, deskewed with ``velocity`` (default: the current one; none for the
         first frame)."""
-        cfg, status = self.config, FrameStatus()
-        if len(self.poses) == cfg.warmup_frames:
-            self.buckets.freeze()
+        cfg, status, timer = self.config, FrameStatus(), self.timer
         T_pred = self._predict(frame_dt)
         if scan is None:
             status.error = source
@@ -367,20 +391,21 @@ class Odometry:
         if self.needs_features and features is None:
             raise InputError(source, f"method '{cfg.method}' needs per-point features")
         try:
-            points, pca = self._preprocess(
-                scan, times, frame_dt, status, source, features, velocity
-            )
+            with timer("preprocess"):
+                points, pca = self._preprocess(
+                    scan, times, frame_dt, status, source, features, velocity
+                )
             scan_size = self.buckets("scan", len(points))
             prep = cfg.preprocess
-            cloud = build_cloud(
-                points, prep.num_neighbors, prep.regularizer, source, scan_size, pca, self.learned
-            )
+            cloud = build_cloud(points, prep.num_neighbors, prep.regularizer, source, scan_size,
+                                pca, self.learned, timer=timer)  # fmt: skip
         except InputError as err:
             status.error = str(err)
             return self._accept(T_pred, None, status, frame_dt)
         status.num_points = len(cloud.points)
         # Taken only now: the map's merge ran beside this frame's preprocessing.
-        target = self.previous if cfg.mode == "frame_to_frame" else self.map.cloud
+        with timer("map"):
+            target = self.previous if cfg.mode == "frame_to_frame" else self.map.cloud
         if target is None:  # first usable scan (earlier ones, if any, were bad): it anchors
             return self._accept(T_pred, cloud, status, frame_dt)
         # Registration in the target's frame: the previous scan's, or the world (local map).
@@ -389,7 +414,7 @@ class Odometry:
             prior = np.asarray(geo.se3_exp_jit(self._velocity(frame_dt)), dtype=np.float64)
         else:
             T_world_target, sizes, prior = np.eye(4), (scan_size, self.map.size), T_pred
-        result = align_prepared(target, cloud, prior, cfg.gicp, sizes)
+        result = align_prepared(target, cloud, prior, cfg.gicp, sizes, timer=timer)
         status.iterations, status.num_inliers = result.iterations, result.num_inliers
         if result.num_inliers:  # without inliers the fit is unknown, not perfect
             status.residual = result.error / result.num_inliers
@@ -413,8 +438,9 @@ class Odometry:
         self.status.append(status)
         if cloud is not None:
             self.previous = cloud
-            if self.config.mode == "frame_to_model" and _needs_keyframe(
-                self.map.last_pose, T, self.config
-            ):
-                self.map.add(cloud, T)
+            with self.timer("map"):
+                if self.config.mode == "frame_to_model" and _needs_keyframe(
+                    self.map.last_pose, T, self.config
+                ):
+                    self.map.add(cloud, T)
         return T

@@ -10,7 +10,9 @@ the KITTI sequence id, the folder's or the recording's name)::
     NN_poses_tum.txt          estimate as NN_poses_kitti.txt, with the frame times
     NN_gt_kitti.txt           ground truth of the frames run, when it exists (evo_ape kitti)
     NN_gt_tum.txt             the same with the frame times (evo_ape tum)
-    metrics.json              KITTI RTE and ATE (when ground truth exists), timing, frame
+    metrics.json              KITTI RTE and ATE (when ground truth exists), timing (per frame,
+                              and stage_ms: each stage's median and p95 ms, gloam_jax.timing,
+                              over the frames after the first two), frame
                               flags, the deskew policy and time convention, the defaults taken,
                               what the loader found (dataset_details: a recording's topic,
                               message count and point fields),
@@ -19,7 +21,7 @@ the KITTI sequence id, the folder's or the recording's name)::
     trajectory.png            the trajectory (against the ground truth, with the error per
                               segment length when the devkit's segments fit)
     config.yaml               the settings used
-    frames.json               each frame's flags (gloam_jax.odometry.FrameStatus)
+    frames.json               each frame's flags and stage_ms (gloam_jax.odometry.FrameStatus)
     checkpoint.npz            while the run is unfinished: the odometry's state, to resume
 
 The poses, frames.json and the checkpoint are written every FLUSH_EVERY frames, each file
@@ -42,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from gloam_jax import io, metrics
+from gloam_jax import io, metrics, timing
 from gloam_jax.config import dump_config
 from gloam_jax.datasets import Dataset, open_dataset
 from gloam_jax.errors import InputError
@@ -135,7 +137,8 @@ def run_dataset(
     scans' sensor (:func:`choose_model`). Learned methods get per-point features from the
     model's backbone, or from one file per scan in ``features_dir`` (the ``precomputed``
     backbone). ``progress(k, ms)`` after the k-th frame. The time per frame counts
-    registration only; feature extraction is timed separately (``median_ms_features``).
+    registration only; feature extraction is timed separately (``median_ms_features``), and
+    each frame's time by stage (loading included) is in its ``stage_ms``.
 
     Poses, frame flags and a checkpoint of the odometry are written every ``flush_every``
     frames, each file atomically; on SIGINT or SIGTERM after the frame in progress, with
@@ -191,13 +194,15 @@ def run_dataset(
                 float(times[i] - times[frames[k - 1]]) if k else config.preprocess.sweep_duration
             )
             try:  # the scan, and its features where the method needs them
-                scan, point_times = dataset.frame(i)
-                if k:  # frame 0 was checked before the run
-                    check_units(scan, config.preprocess, path)
+                with odometry.timer("load"):
+                    scan, point_times = dataset.frame(i)
+                    if k:  # frame 0 was checked before the run
+                        check_units(scan, config.preprocess, path)
                 features = None
                 if backbone is not None:
                     t0 = time.perf_counter()
-                    features = backbone(scan, path=path, frame=i)
+                    with odometry.timer("features"):
+                        features = backbone(scan, path=path, frame=i)
                     feature_ms.append(1e3 * (time.perf_counter() - t0))
             except InputError as err:
                 if on_bad_scan == "stop":
@@ -439,6 +444,8 @@ def write_run(files: RunFiles, odometry: Odometry, config: OdometryConfig,
         "mean_ms_per_frame": float(np.mean(frame_ms)),
         # compilation included: what JAX's persistent cache shortens on a second run
         "first_frames_ms": [float(ms) for ms in frame_ms[:3]],
+        # frames 0 and 1 left out: the first compilations, and frame 1 redoes both
+        "stage_ms": timing.summarise(s["stage_ms"] for s in (flags[2:] if n > 3 else flags)),
         "degenerate_frames": [i for i, s in enumerate(flags) if s["degenerate"]],
         "bad_input_frames": {i: s["error"] for i, s in enumerate(flags) if s["error"]},
         "dropped_invalid_points": int(sum(s["num_dropped"] for s in flags)),

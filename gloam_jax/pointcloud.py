@@ -144,37 +144,34 @@ def bucket_size(n: int, buckets: tuple[int, ...] = BUCKETS) -> int:
 
 
 class StickyBuckets:
-    """Bucket sizes that never shrink, per role ("scan", ...): once a stream of scans has
-    warmed up, shapes, and so compilations, stop changing. Once :meth:`freeze` is called they
-    no longer grow either; callers fit larger inputs to :meth:`limit`."""
+    """Bucket sizes per role ("scan", ...) that grow with the inputs and never shrink: a
+    larger input moves its role up to a larger bucket (one compilation, the first time), a
+    smaller one keeps the size it has, so shapes do not flap between buckets frame to frame.
+    The sizes are :data:`BUCKETS`, the same in every run, so JAX's persistent compilation
+    cache keeps their programs across runs."""
 
     def __init__(self) -> None:
         self._floor: dict[str, int] = {}
-        self._frozen = False
 
     def __call__(self, role: str, n: int) -> int:
+        """The padded size for ``n`` rows of ``role``, grown to hold them if needed."""
         floor = self._floor.get(role, 0)
         if n > floor:
-            if self._frozen:
-                raise ValueError(f"{n} {role} rows exceed the frozen padded size {floor}")
             # 20 % headroom over the largest seen: scans vary by a few percent, and each
             # growth step costs a compilation.
             floor = self._floor[role] = bucket_size(int(n * 1.2))
         return floor
 
-    def freeze(self) -> None:
-        self._frozen = True
+    def floor(self, role: str) -> int:
+        """The current size of ``role`` without growing it; 0 before its first input."""
+        return self._floor.get(role, 0)
 
-    def state(self) -> tuple[dict[str, int], bool]:
-        """The sizes per role and whether they are frozen (for :meth:`restore`)."""
-        return dict(self._floor), self._frozen
+    def state(self) -> dict[str, int]:
+        """The sizes per role (for :meth:`restore`)."""
+        return dict(self._floor)
 
-    def restore(self, floors: dict[str, int], frozen: bool) -> None:
-        self._floor, self._frozen = dict(floors), frozen
-
-    def limit(self, role: str) -> int | None:
-        """The most rows ``role`` takes once frozen; None while sizes may still grow."""
-        return self._floor.get(role) if self._frozen else None
+    def restore(self, floors: dict[str, int]) -> None:
+        self._floor = dict(floors)
 
 
 def pad(array: np.ndarray, size: int, fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

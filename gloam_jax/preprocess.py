@@ -2,8 +2,8 @@
 
 The steps, in order: drop NaN / inf points and crop to a range band, carry per-point times
 (given, or from the azimuth) and PCA features through the voxel grid (averaged per voxel),
-thin evenly to a frozen padded size, and deskew the voxel centres to the scan's reference
-time with a constant velocity.
+and deskew the voxel centres to the scan's reference time with a constant velocity. Every
+voxel centre is kept: padded sizes grow with the scans (:class:`pc.StickyBuckets`).
 
 Deskew policy (``PreprocessConfig.deskew``): ``timestamps`` uses the scan's per-point times,
 ``azimuth`` derives them from each point's azimuth (a spinning sensor, KITTI's HDL-64E),
@@ -251,9 +251,9 @@ def check_units(scan: np.ndarray, config: PreprocessConfig, source=None) -> None
 def centre_rows(
     scan: np.ndarray, config: PreprocessConfig, source: str | None = None
 ) -> np.ndarray:
-    """Which voxel centre of :func:`preprocess_scan` (without ``buckets``, so nothing thinned)
-    each raw point (N,) went into, -1 for points it dropped: the map that averages per-point
-    quantities onto the centres (the fine-tuned backbone's features in training)."""
+    """Which voxel centre of :func:`preprocess_scan` each raw point (N,) went into, -1 for
+    points it dropped: the map that averages per-point quantities onto the centres (the
+    fine-tuned backbone's features in training)."""
     keep, _ = pc.range_mask(scan, config.min_range, config.max_range, source)
     rows = np.full(len(scan), -1, np.int64)
     if config.downsampling_resolution <= 0:
@@ -275,18 +275,17 @@ def preprocess_scan(
     features: np.ndarray | None = None,
     buckets: pc.StickyBuckets | None = None,
     source: str | None = None,
-) -> tuple[np.ndarray, np.ndarray | None, int, int]:
+) -> tuple[np.ndarray, np.ndarray | None, int]:
     """One raw scan (N, 3+) -> its voxel centres (M, 3) float64, deskewed with ``velocity``
     (se(3) per ``frame_dt``; None: not deskewed), their PCA features (M, 6) when ``pca`` is
-    given (from the backbone's ``features`` (N, D)), the number of NaN / inf points dropped
-    and the number of voxel centres thinned out.
+    given (from the backbone's ``features`` (N, D)), and the number of NaN / inf points
+    dropped.
 
     ``times`` (N,) per-point times in any convention (normalised by :func:`normalise_times`),
     or None; ``config.deskew`` says whether they, the azimuth or nothing deskews (``auto``:
     the times when given, else the azimuth; see :func:`resolve_deskew`). ``buckets``
-    size the deskew's padding (role "scan"); once frozen, centres beyond their limit are
-    thinned evenly along the voxel order (so evenly in space). Raises InputError for scans
-    without points in range and for features of the wrong shape.
+    size the deskew's padding (role "scan", grown to hold all M centres). Raises InputError
+    for scans without points in range and for features of the wrong shape.
     """
     keep, dropped = pc.range_mask(scan, config.min_range, config.max_range, source)
     points = scan[keep, :3].astype(np.float64)
@@ -321,15 +320,9 @@ def preprocess_scan(
     # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
     # few voxel centres with their mean time; features are averaged per voxel alike.
     columns = pc.voxel_means(points, config.downsampling_resolution, columns)
-    limit = None if buckets is None else buckets.limit("scan")
-    thinned = 0
-    if limit is not None and len(columns[0]) > limit:
-        thinned = len(columns[0]) - limit
-        rows = np.linspace(0, len(columns[0]) - 1, limit).round().astype(np.int64)
-        columns = [c[rows] for c in columns]
     reduced, pca_features = columns[0], (columns[1] if pca is not None else None)
     points = reduced[:, :3]
     if policy != "off" and velocity is not None:
         size = None if buckets is None else buckets("scan", len(points))
         points = deskew(points, reduced[:, 3], velocity, frame_dt, size)
-    return points, pca_features, dropped, thinned
+    return points, pca_features, dropped

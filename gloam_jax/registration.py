@@ -23,6 +23,7 @@ from gloam_jax.errors import InputError
 from gloam_jax.gicp import Cloud, GICPConfig, retract_host, solve_round
 from gloam_jax.learned import Learned, cloud_attributes
 from gloam_jax.neighbors import KdTree
+from gloam_jax.timing import StageTimer
 
 
 @dataclass
@@ -169,30 +170,35 @@ def build_cloud(
     size: int | None = None,
     pca_features: np.ndarray | None = None,
     learned: Learned | None = None,
+    timer: StageTimer | None = None,
 ) -> PreparedCloud:
     """Tree, covariances and association features of clean, downsampled points (N, 3)
     float64; ``pca_features`` (N, 6) feed the ``learned`` parts (see cloud_attributes).
-    ``size``: rows the jitted covariance code sees (default: the bucket size)."""
+    ``size``: rows the jitted covariance code sees (default: the bucket size); ``timer``
+    counts the stages ``neighbours`` and ``covariances``."""
     learned = Learned() if learned is None else learned
-    tree = KdTree(points, source)
-    neighbours, _ = tree.query(points, num_neighbors)
+    timer = StageTimer() if timer is None else timer
+    with timer("neighbours"):
+        tree = KdTree(points, source)
+        neighbours, _ = tree.query(points, num_neighbors)
     if pca_features is None:
         if learned.eigenvalue is not None or learned.conversion is not None:
             raise InputError(source, "learned covariances or association need point features")
         pca_features = np.zeros((len(points), 0))
     # Padded to a bucket size so that the jitted covariance code compiles once per bucket.
     size = pc.bucket_size(len(points)) if size is None else size
-    covs, features, normals, planarity = cloud_attributes(
-        jnp.asarray(pc.pad(points, size)[0]),
-        jnp.asarray(pc.pad(neighbours, size)[0]),
-        jnp.asarray(pc.pad(np.asarray(pca_features), size)[0]),
-        learned,
-        regularizer,
-    )
-    n = len(points)
-    covs = np.asarray(covs, dtype=np.float64)[:n]
-    features = None if learned.conversion is None else np.asarray(features)[:n]
-    normals, planarity = np.asarray(normals, np.float64)[:n], np.asarray(planarity)[:n]
+    with timer("covariances"):
+        covs, features, normals, planarity = cloud_attributes(
+            jnp.asarray(pc.pad(points, size)[0]),
+            jnp.asarray(pc.pad(neighbours, size)[0]),
+            jnp.asarray(pc.pad(np.asarray(pca_features), size)[0]),
+            learned,
+            regularizer,
+        )
+        n = len(points)
+        covs = np.asarray(covs, dtype=np.float64)[:n]
+        features = None if learned.conversion is None else np.asarray(features)[:n]
+        normals, planarity = np.asarray(normals, np.float64)[:n], np.asarray(planarity)[:n]
     return PreparedCloud(points, covs, tree, features, normals=normals, planarity=planarity)
 
 
@@ -202,50 +208,60 @@ def align_prepared(
     init_T_target_source: np.ndarray | None = None,
     config: GICPConfig = GICPConfig(),
     sizes: tuple[int, int] | None = None,
+    timer: StageTimer | None = None,
 ) -> RegistrationResult:
     """Register prepared clouds; see :func:`align`. ``sizes``: the rows (source, target) the
     solver sees (default: their bucket sizes); the odometry holds them fixed across frames,
-    so the solver compiles once."""
+    so the solver compiles once. ``timer`` counts the stages ``neighbours`` (the candidate
+    queries) and ``solve`` (the rest)."""
+    timer = StageTimer() if timer is None else timer
     T = np.eye(4) if init_T_target_source is None else np.asarray(init_T_target_source, float)
-    if sizes is None:
-        src, tgt = source.padded(), target.padded()
-    else:
-        src, tgt = source.padded(sizes[0]), target.padded(sizes[1])
+    with timer("solve"):  # the device arrays, made on first use
+        if sizes is None:
+            src, tgt = source.padded(), target.padded()
+        else:
+            src, tgt = source.padded(sizes[0]), target.padded(sizes[1])
     size = src.points.shape[0]
     max_d2 = jnp.asarray(config.max_correspondence_distance**2, dtype=geo.real_dtype())
     converged, iterations = False, 0
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007
-        moved = source.points @ T[:3, :3].T + T[:3, 3]
-        cand, valid = target.tree.query(
-            moved, config.num_candidates, config.max_correspondence_distance
-        )
-        cand, valid = pc.pad(cand, size)[0], pc.pad(valid, size)[0]
-        _, xi, system = solve_round(
-            jnp.asarray(T, dtype=geo.real_dtype()),
-            src,
-            tgt,
-            jnp.asarray(cand),
-            jnp.asarray(valid),
-            max_d2,
-            config.inner_steps,
-            config.adjoint,
-        )
-        # Compose in float64 on the host so that many rounds do not accumulate float32 error.
-        T_round, T = T, retract_host(np.asarray(xi, np.float64), T)
-        H, b, error, inliers = (np.asarray(x, np.float64) for x in system)
-        # Converged when the next Gauss-Newton step would be below the thresholds (small_gicp's
-        # criterion), provided the candidates are still fresh: no point moved farther than a
-        # tenth of the correspondence distance since they were found.
-        step = _gauss_newton_step(H, b)
-        fresh = _largest_shift(T_round, T, source.radius) < 0.1 * config.max_correspondence_distance
-        small = np.linalg.norm(step[3:]) < config.rotation_eps
+        with timer("neighbours"):
+            moved = source.points @ T[:3, :3].T + T[:3, 3]
+            cand, valid = target.tree.query(
+                moved, config.num_candidates, config.max_correspondence_distance
+            )
+            cand, valid = pc.pad(cand, size)[0], pc.pad(valid, size)[0]
+        with timer("solve"):  # dispatch, then the wait for the results np.asarray reads
+            _, xi, system = solve_round(
+                jnp.asarray(T, dtype=geo.real_dtype()),
+                src,
+                tgt,
+                jnp.asarray(cand),
+                jnp.asarray(valid),
+                max_d2,
+                config.inner_steps,
+                config.adjoint,
+            )
+            # Compose in float64 on the host so that many rounds do not accumulate float32
+            # error.
+            T_round, T = T, retract_host(np.asarray(xi, np.float64), T)
+            H, b, error, inliers = (np.asarray(x, np.float64) for x in system)
+            # Converged when the next Gauss-Newton step would be below the thresholds
+            # (small_gicp's criterion), provided the candidates are still fresh: no point moved
+            # farther than a tenth of the correspondence distance since they were found.
+            step = _gauss_newton_step(H, b)
+            shift = _largest_shift(T_round, T, source.radius)
+            fresh = shift < 0.1 * config.max_correspondence_distance
+            small = np.linalg.norm(step[3:]) < config.rotation_eps
         if inliers > 0 and fresh and small and np.linalg.norm(step[:3]) < config.translation_eps:
             converged = True
             break
-    rows, weight = constraint_rows(target, source, T, config.max_correspondence_distance)
-    condition, weak, support = conditioning(
-        rows, weight, config.lever_arm, config.degeneracy_threshold, config.degeneracy_support
-    )
+    with timer("neighbours"):
+        rows, weight = constraint_rows(target, source, T, config.max_correspondence_distance)
+    with timer("solve"):
+        condition, weak, support = conditioning(
+            rows, weight, config.lever_arm, config.degeneracy_threshold, config.degeneracy_support
+        )
     return RegistrationResult(
         T, converged, iterations, int(inliers), H, b, float(error), condition, weak, support
     )

@@ -14,7 +14,10 @@ scans, in order, with the same number of threads:
 * ``kiss-icp``: KISS-ICP with its default configuration, deskew on (times in [0, 1]).
 
 Prints t_err (%), r_err (deg/100 m) with the KITTI devkit metric in the camera-0 frame, and the
-median milliseconds per frame; counts JAX compilations after the first 20 frames.
+median milliseconds per frame; counts JAX compilations after the first 20 frames. For this
+project's methods, a second table breaks a frame down by stage (``gloam_jax.timing``: load,
+features, preprocess, neighbours, covariances, solve, map, other), each stage's median and 95th
+percentile in ms over the frames after the first two (``stage_ms`` in the ``--out`` file).
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from pathlib import Path
 import numpy as np
 from make_tables import window_rte
 
-from gloam_jax import io, metrics
+from gloam_jax import io, metrics, timing
 
 
 class _CompileCounter(logging.Handler):
@@ -56,12 +59,14 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         backbone = odometry.model.backbone()
     times, ms, feature_ms, late_compiles = seq.times, [], [], 0
     for i in range(n):
-        scan, point_times = seq.scan(i), seq.point_times(i)
+        with odometry.timer("load"):
+            scan, point_times = seq.scan(i), seq.point_times(i)
         dt = float(times[i] - times[i - 1]) if i else 0.1
         features = None
         if backbone is not None:
             t0 = time.perf_counter()
-            features = backbone(scan, path=seq.scan_path(i), frame=i)
+            with odometry.timer("features"):
+                features = backbone(scan, path=seq.scan_path(i), frame=i)
             feature_ms.append(1e3 * (time.perf_counter() - t0))
         if i == 20:
             late_compiles = counter.count
@@ -73,6 +78,8 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         "rounds_per_frame": float(np.mean([s.iterations for s in odometry.status[1:]])),
         "degenerate_frames": int(sum(s.degenerate for s in odometry.status)),
         "thinned_points": int(sum(s.num_thinned for s in odometry.status)),
+        # frames 0 and 1 left out: the first compilations, and frame 1 redoes both
+        "stage_ms": timing.summarise(s.stage_ms for s in odometry.status[2 if n > 3 else 0 :]),
     }
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
@@ -200,6 +207,27 @@ def main() -> None:
             f"| {name} | {method} | {r['t_err_percent']:.2f} | {r['r_err_deg_per_100m']:.2f} | "
             f"{r['median_ms_per_frame']:.1f} | {ratio} |"
         )
+    if any(r.get("stage_ms") for r in results.values()):
+        print("\n" + stage_table(results))
+
+
+def stage_table(results: dict) -> str:
+    """The per-stage breakdown of the entries with one (this project's methods): median / p95
+    ms of each stage, and the sum of the medians (the stages do not overlap: about a typical
+    frame's time, loading and features included)."""
+    lines = [
+        "| sequence | method | " + " | ".join(timing.STAGES) + " | sum of medians |",
+        "|---|---|" + "---|" * (len(timing.STAGES) + 1),
+    ]
+    for key, r in results.items():
+        stages = r.get("stage_ms")
+        if not stages:
+            continue
+        name, method = key.split("/")
+        cells = [f"{stages[s]['median']:.1f} / {stages[s]['p95']:.1f}" for s in timing.STAGES]
+        total = sum(stages[s]["median"] for s in timing.STAGES)
+        lines.append(f"| {name} | {method} | " + " | ".join(cells) + f" | {total:.1f} |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

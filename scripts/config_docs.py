@@ -82,6 +82,8 @@ def render() -> str:
             cells = [f"`{row['name']}`", f"`{row['type']}`", f"`{row['default']}`",
                      row["unit"], row["meaning"]]  # fmt: skip
             parts.append("| " + " | ".join(_cell(c) for c in cells) + " |\n")
+        for key, why in getattr(cls, "RETIRED", {}).items():
+            parts.append(f"\nRetired: `{key}` is accepted in old files and ignored ({why}).\n")
     return "".join(parts)
 
 

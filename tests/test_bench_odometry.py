@@ -28,3 +28,32 @@ def test_a_drive_is_scored_by_the_devkit_or_over_segments_scaled_to_it(bench_odo
         assert scored["lengths_m"] == [2, 4, 6, 8, 10, 12, 14, 16]
     else:
         assert "lengths_m" not in scored
+
+
+def test_our_methods_get_a_per_stage_breakdown(bench_odometry, sim_sequence):
+    from gloam_jax import io
+    from gloam_jax.odometry import OdometryConfig
+    from gloam_jax.timing import STAGES
+
+    seq = io.KittiSequence(sim_sequence, "00")
+    poses, ms, extra = bench_odometry.run_ours(
+        seq, 5, OdometryConfig(), None, bench_odometry._CompileCounter()
+    )
+    assert poses.shape == (5, 4, 4) and len(ms) == 5
+    stages = extra["stage_ms"]
+    assert tuple(stages) == STAGES
+    assert all(0 <= s["median"] <= s["p95"] for s in stages.values())
+    for stage in ("load", "preprocess", "neighbours", "covariances", "solve"):
+        assert stages[stage]["median"] > 0, stage
+    assert stages["features"]["p95"] == 0  # gicp: no backbone
+    # registration's stages: their medians over frames 2-4 add up to no more than those
+    # frames' registration time (a bound that holds whatever their spread), and to some of it
+    registration = sum(s["median"] for k, s in stages.items() if k not in ("load", "features"))
+    assert min(ms[2:]) / 10 < registration <= sum(ms[2:]) + 0.1
+    table = bench_odometry.stage_table({"00/gicp": {"stage_ms": stages}, "00/small_gicp": {}})
+    header, rule, row = table.splitlines()
+    assert header.split(" | ")[2:-1] == list(STAGES) and rule.count("---") == len(STAGES) + 3
+    cells = row.strip("| ").split(" | ")
+    assert cells[:2] == ["00", "gicp"] and len(cells) == len(STAGES) + 3
+    assert cells[2] == f"{stages['load']['median']:.1f} / {stages['load']['p95']:.1f}"
+    assert float(cells[-1]) == pytest.approx(sum(s["median"] for s in stages.values()), abs=0.06)

@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -15,8 +16,9 @@ from gloam_jax.config import dump_config, load_config
 from gloam_jax.errors import InputError
 from gloam_jax.gicp import GICPConfig
 from gloam_jax.odometry import Odometry, OdometryConfig, remap
-from gloam_jax.preprocess import azimuth_times, deskew
+from gloam_jax.preprocess import azimuth_times, deskew, preprocess_scan
 from gloam_jax.registration import align_prepared, conditioning, prepare
+from gloam_jax.timing import STAGES
 
 
 def test_azimuth_times_match_the_simulated_timestamps(sim_sequence):
@@ -87,6 +89,34 @@ def test_the_residual_reports_how_well_a_scan_fits(sim_sequence):
     assert residuals[1] > 1.2 * residuals[0]  # 1.45 on this drive
 
 
+def test_each_frame_records_where_its_time_went(sim_sequence):
+    """FrameStatus.stage_ms: every stage, none negative, adding up to the frame's wall time
+    (the caller's load, then register_frame's stages and the rest as ``other``); frame 0
+    keeps its own through the redo of frames 0 and 1, and solves nothing. A frame that
+    raises leaves no time to the next."""
+    seq = io.KittiSequence(sim_sequence, "00")
+    odometry, walls = Odometry(OdometryConfig()), []
+    for i in range(5):
+        t0 = time.perf_counter()
+        with odometry.timer("load"):
+            scan, times = seq.scan(i), seq.point_times(i)
+        odometry.register_frame(scan, times, 0.1)
+        walls.append(1e3 * (time.perf_counter() - t0))
+    for k, (status, wall) in enumerate(zip(odometry.status, walls, strict=True)):
+        ms = status.stage_ms
+        assert tuple(ms) == STAGES and min(ms.values()) >= 0, (k, ms)
+        assert ms["load"] > 0 and ms["features"] == 0, (k, ms)  # gicp: no backbone
+        # each stage rounded to 0.01 ms; outside them only the loop's own few statements
+        assert wall - 1.0 - 0.02 * wall < sum(ms.values()) < wall + 0.05, (k, wall, ms)
+        assert (ms["solve"] > 0) == (k > 0) and ms["neighbours"] > 0 and ms["preprocess"] > 0
+    with odometry.timer("load"):
+        time.sleep(0.05)
+    with pytest.raises(InputError, match="frame_dt must be a positive time step"):
+        odometry.register_frame(seq.scan(5), seq.point_times(5), 0.0)
+    odometry.register_frame(seq.scan(5), seq.point_times(5), 0.1)
+    assert odometry.status[-1].stage_ms["load"] == 0
+
+
 def test_frame_to_frame_mode_runs(sim_sequence):
     seq = io.KittiSequence(sim_sequence, "00")
     odometry = Odometry(OdometryConfig(mode="frame_to_frame"))
@@ -106,29 +136,40 @@ def corridor(seed: int, length: float = 200.0, n: int = 30000) -> np.ndarray:
     return np.c_[x, y, z]
 
 
-def test_sizes_are_fixed_after_the_warm_up_and_denser_scans_thinned(sim_sequence):
+def test_a_denser_scan_moves_up_a_bucket_with_all_its_points(sim_sequence, monkeypatch):
+    """Padded sizes grow with the scans and never shrink: a denser scan mid-run is registered
+    with every voxel centre (nothing thinned) and moves the scans, and with them the map, up
+    to a larger bucket, where the later, sparser scans stay: two solver shapes in all."""
     seq = io.KittiSequence(sim_sequence, "00")
     # Scan 3 with copies of itself 0.25 m above and below (voxels of 0.5 m): more centres,
     # the surfaces thicker but not moved.
     scan = seq.scan(3)
     up = np.zeros(scan.shape[1], scan.dtype)
     up[2] = 0.25
-    denser = np.vstack([scan, scan + up, scan - up])
-    runs = {}
-    for warmup in (2, 100):  # frozen before the denser scan, or still growing
-        odometry = Odometry(OdometryConfig(warmup_frames=warmup))
-        for i in range(3):
-            odometry.register_frame(seq.scan(i), seq.point_times(i), 0.1)
-        limit = odometry.buckets.limit("scan")
-        T = odometry.register_frame(denser, np.tile(seq.point_times(3), 3), 0.1)
-        runs[warmup] = (limit, T, odometry.status[-1], odometry.map.size)
-    limit, T_frozen, frozen, map_size = runs[2]
-    _, T_growing, growing, _ = runs[100]
-    assert runs[100][0] is None and growing.num_thinned == 0
-    assert growing.num_points > limit  # the denser scan outgrows the frozen size ...
-    assert frozen.num_points == limit and frozen.num_thinned == growing.num_points - limit
-    assert map_size == 10 * limit and not frozen.error  # ... which stays, the scan thinned
-    np.testing.assert_allclose(T_frozen, T_growing, atol=0.02)
+    denser, denser_times = np.vstack([scan, scan + up, scan - up]), np.tile(seq.point_times(3), 3)
+    pairs = set()  # the (source, target) rows of every registration
+
+    def recording(target, source, prior, config, sizes, **kw):
+        pairs.add(sizes)
+        return align_prepared(target, source, prior, config, sizes, **kw)
+
+    monkeypatch.setattr("gloam_jax.odometry.align_prepared", recording)
+    odometry, floors = Odometry(OdometryConfig()), []
+    for i in range(6):
+        frame = (denser, denser_times) if i == 3 else (seq.scan(i), seq.point_times(i))
+        odometry.register_frame(*frame, 0.1)
+        floors.append(odometry.buckets.floor("scan"))
+        assert odometry.map.size == 10 * floors[-1]  # the map follows the scans' size
+    status = odometry.status[3]
+    centres = len(preprocess_scan(denser, denser_times, OdometryConfig().preprocess)[0])
+    assert status.num_points == centres and status.num_thinned == 0 and not status.error
+    assert floors[:3] == [floors[0]] * 3 and floors[3:] == [floors[3]] * 3  # no flapping
+    assert floors[2] < centres <= floors[3]  # the denser scan outgrew the first size
+    assert pairs == {(floors[0], 10 * floors[0]), (floors[3], 10 * floors[3])}
+    gt, est = seq.gt_poses_lidar, np.stack(odometry.poses)
+    motion = np.linalg.inv(gt[:-1]) @ gt[1:]
+    error = np.linalg.inv(motion[:5]) @ np.linalg.inv(est[:-1]) @ est[1:]
+    assert np.linalg.norm(error[2, :3, 3]) < 0.02  # frame 3's motion, as the other frames'
 
 
 def test_degenerate_corridor_is_flagged_and_remapped():
@@ -264,6 +305,10 @@ def test_old_config_keys_name_their_new_place(tmp_path):
     (tmp_path / "old_batch.yaml").write_text("batch:\n  inner_steps: 3\n")
     with pytest.raises(InputError, match="'batch.inner_steps' moved to 'batch.gicp.inner_steps'"):
         load_config(tmp_path / "old_batch.yaml", TrainConfig)
+    # A retired key (warmup_frames: padded sizes now grow all run long) loads and is ignored,
+    # so old files and old run folders' config.yaml (read by --resume) still work.
+    (tmp_path / "retired.yaml").write_text("base: gicp\nwarmup_frames: 20\n")
+    assert load_config(tmp_path / "retired.yaml") == load_config("gicp")
 
 
 def test_a_partial_section_keeps_its_parents_defaults(tmp_path):
@@ -369,21 +414,37 @@ def test_simulated_degenerate_scenes_are_flagged(kind):
 @pytest.mark.parametrize("mode", ["frame_to_model", "frame_to_frame"])
 def test_a_restored_state_registers_the_next_frames_exactly(sim_sequence, tmp_path, mode):
     seq = io.KittiSequence(sim_sequence, "00")
-    config = OdometryConfig(mode=mode, warmup_frames=3)  # frozen sizes saved and restored
+    config = OdometryConfig(mode=mode)
+
+    def frame(i: int) -> tuple[np.ndarray, np.ndarray]:
+        """Scan i, and at 8 scan 8 twice, 0.25 m apart in height: after the resume the
+        padded sizes grow from the restored ones."""
+        scan, times = seq.scan(i), seq.point_times(i)
+        if i == 8:
+            scan, times = np.vstack([scan, scan + [0, 0, 0.25, 0]]), np.tile(times, 2)
+        return scan, times
+
     whole = Odometry(config)
     for i in range(10):
-        whole.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+        whole.register_frame(*frame(i), 0.1)
         if i == 5:
-            io.write_npz(tmp_path / "state.npz", **whole.state())
+            # An older checkpoint's key for sizes frozen after a warm-up: ignored.
+            io.write_npz(tmp_path / "state.npz", **whole.state(), buckets_frozen=np.bool_(True))
+            floor = whole.buckets.floor("scan")
+    assert whole.buckets.floor("scan") > floor and not any(s.num_thinned for s in whole.status)
     resumed = Odometry(config)
     resumed.restore(dict(np.load(tmp_path / "state.npz", allow_pickle=False)), whole.status[:6])
     assert resumed.resumable and len(resumed.poses) == 6
     for i in range(6, 10):
-        resumed.register_frame(seq.scan(i), seq.point_times(i), 0.1)
+        resumed.register_frame(*frame(i), 0.1)
     np.testing.assert_array_equal(np.stack(resumed.poses), np.stack(whole.poses))
-    assert json.dumps([dataclasses.asdict(s) for s in resumed.status]) == json.dumps(
-        [dataclasses.asdict(s) for s in whole.status]
-    )
+
+    def results(statuses):  # all but the stage times, measurements that differ run to run
+        return json.dumps([dataclasses.asdict(s) | {"stage_ms": None} for s in statuses])
+
+    assert results(resumed.status) == results(whole.status)
+    restored = [s.stage_ms for s in resumed.status[:6]]
+    assert restored == [s.stage_ms for s in whole.status[:6]] and all(restored)
     fresh = Odometry(config)
     fresh.register_frame(seq.scan(0), seq.point_times(0), 0.1)
     with pytest.raises(ValueError, match="not final yet"):  # frames 0 and 1 wait for a redo

@@ -16,8 +16,9 @@ from gloam_jax import io
 from gloam_jax.cli import app
 from gloam_jax.datasets import open_dataset
 from gloam_jax.errors import InputError
-from gloam_jax.odometry import OdometryConfig
+from gloam_jax.odometry import FrameStatus, OdometryConfig
 from gloam_jax.pipeline import run_dataset, select_frames, unfinished_runs
+from gloam_jax.timing import STAGES
 
 runner = CliRunner()
 FLUSH = ["--flush-every", "4"]
@@ -242,3 +243,29 @@ def test_a_two_million_point_scan_runs_within_4_gb(tmp_path):
     assert peak_kib * 1024 < 4 * 2**30, f"peak RSS {peak_kib / 2**20:.2f} GiB"
     metrics = json.loads((tmp_path / "out" / "latest" / "metrics.json").read_text())
     assert metrics["num_frames"] == 3 and not metrics["bad_input_frames"]
+
+
+def test_a_run_records_each_frames_stages_and_their_median_and_p95(sim_sequence, tmp_path):
+    """frames.json: each frame's stage_ms, loading included; metrics.json: each stage's median
+    and p95 over the frames after the first two. Older frames.json entries without times
+    still load."""
+    result = run_dataset(open_dataset(sim_sequence, "00"), OdometryConfig(), tmp_path,
+                         select_frames(40, 0, 6), flush_every=4)  # fmt: skip
+    flags = json.loads((tmp_path / "frames.json").read_text())
+    stage_ms = [f["stage_ms"] for f in flags]
+    assert len(stage_ms) == 6 and all(tuple(ms) == STAGES for ms in stage_ms)
+    assert all(ms["load"] > 0 and min(ms.values()) >= 0 for ms in stage_ms)
+    assert all(ms["solve"] > 0 and ms["neighbours"] > 0 for ms in stage_ms[1:])
+    # the stages inside registration add up to its time (frames 0, 1 redone within frame 1's)
+    registration = [sum(v for k, v in ms.items() if k not in ("load", "features"))
+                    for ms in stage_ms]  # fmt: skip
+    assert result["first_frames_ms"] == pytest.approx(registration[:3], abs=0.5)
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["stage_ms"] == result["stage_ms"]
+    for stage in STAGES:
+        later = [ms[stage] for ms in stage_ms[2:]]
+        summary = metrics["stage_ms"][stage]
+        assert summary["median"] == pytest.approx(np.median(later), abs=0.01)
+        assert summary["p95"] == pytest.approx(np.percentile(later, 95), abs=0.01)
+    old = {k: v for k, v in flags[3].items() if k != "stage_ms"}
+    assert FrameStatus(**old).stage_ms == {}

@@ -79,13 +79,14 @@ def test_prepare_drops_a_far_outlier():
     assert result.num_dropped == 1
     assert pc.bucket_size(1000) == 1024 and pc.bucket_size(1025) == 1280
     sticky = pc.StickyBuckets()
-    assert sticky("source", 1000) == pc.bucket_size(1200)
-    assert sticky("source", 500) == pc.bucket_size(1200)  # never shrinks
-    assert sticky.limit("source") is None
-    sticky.freeze()
-    assert sticky.limit("source") == pc.bucket_size(1200) == sticky("source", 1100)
-    with pytest.raises(ValueError, match="frozen"):
-        sticky("source", 5000)
+    assert sticky.floor("source") == 0
+    assert sticky("source", 1000) == pc.bucket_size(1200) == 1280
+    assert sticky("source", 500) == sticky("source", 1100) == 1280  # never shrinks
+    assert sticky("source", 5000) == pc.bucket_size(6000) == 6144  # grows, 20 % headroom
+    assert sticky("source", 1000) == sticky.floor("source") == 6144  # and stays there
+    restored = pc.StickyBuckets()
+    restored.restore(sticky.state())
+    assert restored("source", 6000) == 6144 and restored.floor("other") == 0
     padded, mask = pc.pad(np.ones((3, 2)), 5)
     assert padded.shape == (5, 2) and mask.tolist() == [True] * 3 + [False] * 2
 

@@ -35,7 +35,6 @@ def test_gicp_settings(field, value, message):
     ("field", "value", "message"),
     [
         ("max_keyframes", 0, "max_keyframes must be an integer >= 1"),
-        ("warmup_frames", -1, "warmup_frames must be an integer >= 0"),
         ("keyframe_distance", 0.0, "keyframe_distance must be positive"),
     ],
 )

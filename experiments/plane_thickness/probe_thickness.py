@@ -37,7 +37,7 @@ from gloam_jax.training.config import TrainConfig  # noqa: E402
 def learned_values(model, scan: np.ndarray, config) -> np.ndarray:
     """Algorithm 1's ascending eigenvalues (M, 3) at one raw scan's voxel centres."""
     features = model.backbone()(scan)
-    _, pca_features, _, _ = preprocess_scan(scan, None, config, pca=model.pca, features=features)
+    _, pca_features, _ = preprocess_scan(scan, None, config, pca=model.pca, features=features)
     return np.asarray(
         cov.learned_values(model.eigenvalue(pca_features), model.eps, model.max_thickness)
     )

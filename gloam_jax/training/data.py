@@ -88,7 +88,7 @@ def _prepare_scan(seq, i, config, pca, backbone, velocity, frame_dt) -> Prepared
     scan = seq.scan(i)
     path = str(seq.scan_path(i))
     features = None if pca is None else backbone(scan, path=path, frame=i)
-    points, pca_features, _, _ = preprocess_scan(
+    points, pca_features, _ = preprocess_scan(
         scan,
         seq.point_times(i),
         config,

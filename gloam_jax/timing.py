@@ -1,0 +1,81 @@
+"""Where a frame's time goes: wall-clock milliseconds per stage, for the run's report.
+
+A :class:`StageTimer` adds up the stages of the frame in progress; the odometry files them
+with the frame's status (``FrameStatus.stage_ms``) and starts the next frame from zero. The
+stages, in the order a frame meets them:
+
+* ``load``: reading the scan file and checking it (the caller's, :mod:`gloam_jax.pipeline`);
+* ``features``: the backbone's per-point features, for the learned methods (the caller's);
+* ``preprocess``: cleaning, cropping, voxel grid, deskew;
+* ``neighbours``: the host's k-d trees: the scan's tree and k-NN for its covariances, each
+  round's candidate query, the degeneracy check's nearest neighbours;
+* ``covariances``: the jitted k-NN covariances and learned attributes, their transfers;
+* ``solve``: the jitted GICP rounds, their transfers and the wait for their results, the
+  host's convergence and degeneracy checks;
+* ``map``: the keyframe decision, adding a keyframe and waiting for the local map's merge
+  (the merge itself runs on a worker thread, beside the next frame's preprocessing);
+* ``other``: the rest of the frame's registration (motion prediction, velocity, remapping).
+
+JAX dispatches asynchronously: device work counts where its result is read (``np.asarray``),
+which every stage above does before it ends, so no stage waits for another's device work.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+
+import numpy as np
+
+STAGES: tuple[str, ...] = (
+    "load", "features", "preprocess", "neighbours", "covariances", "solve", "map", "other",
+)  # fmt: skip
+
+
+class _Span:
+    __slots__ = ("timer", "stage", "start")
+
+    def __init__(self, timer: StageTimer, stage: str) -> None:
+        self.timer, self.stage = timer, stage
+
+    def __enter__(self) -> None:
+        self.start = time.perf_counter()
+
+    def __exit__(self, *exc) -> None:
+        ms = self.timer.ms
+        ms[self.stage] = ms.get(self.stage, 0.0) + 1e3 * (time.perf_counter() - self.start)
+
+
+class StageTimer:
+    """Milliseconds per stage of the frame in progress: ``with timer("solve"): ...`` adds the
+    block's wall time to its stage."""
+
+    def __init__(self) -> None:
+        self.ms: dict[str, float] = {}
+
+    def __call__(self, stage: str) -> _Span:
+        return _Span(self, stage)
+
+    def take(self, total_ms: float | None = None) -> dict[str, float]:
+        """Every stage's milliseconds so far (0 for those not met), to 0.01 ms, and back to
+        zero; ``total_ms``: the registration's wall time, whose part outside the registration
+        stages is ``other``."""
+        ms, self.ms = self.ms, {}
+        if total_ms is not None:
+            inside = sum(v for k, v in ms.items() if k not in ("load", "features", "other"))
+            ms["other"] = ms.get("other", 0.0) + max(total_ms - inside, 0.0)
+        return {stage: round(ms.get(stage, 0.0), 2) for stage in STAGES}
+
+
+def summarise(stage_ms: Iterable[dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Median and 95th percentile (ms) of each stage over frames' ``stage_ms`` records (those
+    without one, frames of older runs, left out); empty without any."""
+    rows = [r for r in stage_ms if r]
+    if not rows:
+        return {}
+    table = np.array([[r.get(stage, 0.0) for stage in STAGES] for r in rows])
+    median, p95 = np.median(table, axis=0), np.percentile(table, 95, axis=0)
+    return {
+        stage: {"median": round(float(m), 2), "p95": round(float(p), 2)}
+        for stage, m, p in zip(STAGES, median, p95, strict=True)
+    }
