@@ -32,9 +32,10 @@ sensor, or the guard's variant (each run's ``model_choice`` says which); no file
 
 Table III, for each model label: its gain against GICP (group mean t_err over GICP's, less 1)
 per group of worlds (``protocol.world_groups``: held-out family, held-out sensor, seen,
-undistorted) and per world, with a 95 % bootstrap interval that resamples the label's model
-files and the simulation seeds (GICP on the same resampled seeds), the cells (file x seed)
-more than 2 % worse than GICP's, and issue 18's targets. ``gains.png`` plots it per world.
+undistorted, distorted HDL-64, VLP-16) and per world, with a 95 % bootstrap interval that
+resamples the label's model files and the simulation seeds (GICP on the same resampled seeds),
+the cells (file x seed) more than 2 % worse than GICP's, and the test split's targets (issue
+18's on ``test``, issue 41's on ``test_long``). ``gains.png`` plots it per world.
 ``--rebuild`` writes the tables again from ``--out``'s tables.json, running and recording nothing.
 """
 
@@ -169,6 +170,9 @@ TARGETS = (
     ("held-out sensor", -0.20),
     ("world", WORSE),
 )
+# Issue 41's, on the KITTI-length test split: the distorted HDL-64 worlds 25 % below GICP, the
+# other trained sensor's (VLP-16) 10 %, and no world more than 2 % worse.
+LONG_TARGETS = (("distorted HDL-64", -0.25), ("VLP-16", -0.10), ("world", WORSE))
 
 
 def t_err_arrays(runs: dict[str, list[dict]], worlds: tuple[str, ...], label: str):
@@ -219,8 +223,8 @@ def gains(record: dict, label: str, resamples: int = 2000, seed: int = 0) -> dic
         if ws:
             groups[name] = {"worlds": ws, **gain([worlds.index(w) for w in ws])}
     per_world = {w: gain([i]) for i, w in enumerate(worlds)}
-    targets = []  # judged on the test split only
-    for name, bound in TARGETS if record["split"] == "test" else ():
+    targets = []  # judged on the test splits only
+    for name, bound in {"test": TARGETS, "test_long": LONG_TARGETS}.get(record["split"], ()):
         rows = [per_world[w] for w in worlds] if name == "world" else [groups.get(name)]
         if None in rows:
             continue
@@ -253,7 +257,7 @@ def gains_markdown(label: str, table: dict) -> list[str]:
     lines += ["", head.format("world"), "|---|---|---|---|"]
     lines += [row(w, g) for w, g in table["worlds"].items()]
     if table["targets"]:
-        lines += ["", "| issue 18 target | bound | gain | met | interval decides |"]
+        lines += ["", "| target | bound | gain | met | interval decides |"]
         lines += ["|---|---|---|---|---|"]
     for t in table["targets"]:
         name = "every world" if t["target"] == "world" else t["target"]

@@ -192,6 +192,29 @@ def test_table_iii_gains_intervals_and_targets():
     assert not targets["world"]["met"] and targets["world"]["gain"] == pytest.approx(0.3, abs=1e-12)
 
 
+def test_the_long_test_split_is_judged_by_issue_41s_targets_per_sensor():
+    # 501-510: distorted HDL-64 501, 504, 508, 510 at 0.8 of GICP; VLP-16 506 at 0.85 and 509
+    # at 0.93; OS1-64 502, 505, 507 (the guard's GICP) at 1.0; undistorted HDL-64 503 at 1.03
+    worlds = tuple(str(w) for w in range(501, 511))
+    ratio = {"501": 0.8, "504": 0.8, "508": 0.8, "510": 0.8, "506": 0.85, "509": 0.93, "503": 1.03}
+    row = np.array([ratio.get(w, 1.0) for w in worlds])
+    record = {**_record(np.tile(row, (1, 2, 1)), np.ones((2, 10)), worlds), "split": "test_long"}
+    table = make_tables.gains(record, "GLOAM (m)")
+    groups = table["groups"]
+    assert groups["distorted HDL-64"]["worlds"] == ["501", "504", "508", "510"]
+    assert groups["VLP-16"]["worlds"] == ["506", "509"]
+    assert groups["VLP-16"]["gain"] == pytest.approx(-0.11, abs=1e-12)
+    targets = {t["target"]: t for t in table["targets"]}
+    assert set(targets) == {"distorted HDL-64", "VLP-16", "world"}
+    assert not targets["distorted HDL-64"]["met"]  # -20 % against -25 %
+    assert targets["distorted HDL-64"]["gain"] == pytest.approx(-0.2, abs=1e-12)
+    assert targets["VLP-16"]["met"]  # -11 % against -10 %
+    assert not targets["world"]["met"] and targets["world"]["gain"] == pytest.approx(0.03)
+    assert "| target | bound | gain | met | interval decides |" in make_tables.gains_markdown(
+        "GLOAM (m)", table
+    )
+
+
 def test_table_iii_interval_spans_what_the_files_and_seeds_span():
     # the two files disagree on 305: 0.7 and 1.5 of GICP on each seed; GICP's seeds differ
     worlds = [str(w) for w in range(301, 311)]

@@ -160,7 +160,8 @@ def world_groups(split: str) -> dict[str, tuple[str, ...]]:
     """The ids of ``split``'s worlds by what issue 18 judges separately: the held-out family
     (``yard``, whatever its sensor), the held-out sensor (``os1-64``, whatever its family), the
     worlds with neither ("seen": a family and a sensor that training has), the undistorted ones,
-    and all. A world of the held-out family seen by the held-out sensor is in both groups."""
+    and all. A world of the held-out family seen by the held-out sensor is in both groups.
+    Issue 41 judges per sensor: the distorted HDL-64 worlds and the VLP-16 ones."""
     worlds = SPLITS[split]
     return {
         "held-out family": tuple(w.sequence for w in worlds if w.family == HELD_OUT_FAMILY),
@@ -171,6 +172,10 @@ def world_groups(split: str) -> dict[str, tuple[str, ...]]:
             if w.family != HELD_OUT_FAMILY and w.sensor != HELD_OUT_SENSOR
         ),
         "undistorted": tuple(w.sequence for w in worlds if not w.motion_distortion),
+        "distorted HDL-64": tuple(
+            w.sequence for w in worlds if w.sensor == "hdl64" and w.motion_distortion
+        ),
+        "VLP-16": tuple(w.sequence for w in worlds if w.sensor == "vlp16"),
         "all": tuple(w.sequence for w in worlds),
     }
 
