@@ -38,10 +38,12 @@ import json
 import os
 import signal
 import time
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import closing
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -57,6 +59,7 @@ from gloam_jax.odometry import FrameStatus, Odometry, OdometryConfig
 from gloam_jax.preprocess import ONE_INSTANT, check_units, detect_time_convention, resolve_deskew
 from gloam_jax.sensor import SENSOR_SCANS
 
+Item = TypeVar("Item")
 FLUSH_EVERY = 100  # frames between two writes of the poses and the checkpoint
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_VERSION = 1
@@ -205,24 +208,18 @@ def run_dataset(
             ms["features"] = 1e3 * (time.perf_counter() - t0)
         return scan, point_times, features, ms
 
-    # The next frame is read and its features computed on a worker thread while this one
-    # registers: the backbone and the file reads are NumPy and scipy code that releases the
-    # GIL, so on two cores they overlap the registration instead of adding to it. Poses are
-    # the same; a frame's ``load`` and ``features`` stages are the worker's time for it.
     start = len(odometry.poses)
+    loop_start = time.perf_counter()
     with (
-        ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch") as prefetch,
         stop_between(signal.SIGINT, signal.SIGTERM) as pending,
+        closing(prefetched(fetch, range(start, n))) as inputs,
     ):
-        ahead = prefetch.submit(fetch, start) if start < n else None
-        loop_start = time.perf_counter()
-        for k in range(start, n):
+        for k, current in zip(range(start, n), inputs, strict=True):
             i = frames[k]
             path = dataset.scan_path(i)
             frame_dt = (
                 float(times[i] - times[frames[k - 1]]) if k else config.preprocess.sweep_duration
             )
-            current, ahead = ahead, prefetch.submit(fetch, k + 1) if k + 1 < n else None
             try:  # the scan, and its features where the method needs them
                 scan, point_times, features, ms = current.result()
             except InputError as err:
@@ -263,6 +260,20 @@ def run_dataset(
     result = write_run(files, odometry, config, frame_ms, extra)
     (out / CHECKPOINT).unlink(missing_ok=True)
     return result
+
+
+def prefetched(fetch: Callable[[int], Item], ks: range) -> Iterator[Future[Item]]:
+    """``fetch(k)`` for each k of ``ks``, in order, as futures: the next one runs on a worker
+    thread while the caller handles the current one. The odometry's input (reading a scan,
+    the backbone's features) is NumPy and scipy code that releases the GIL, so on two cores it
+    overlaps the registration instead of adding to it. Leaving the loop early waits for the
+    one fetch in flight."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch") as pool:
+        ahead = pool.submit(fetch, ks[0]) if len(ks) else None
+        for j in range(len(ks)):
+            current = ahead
+            ahead = pool.submit(fetch, ks[j + 1]) if j + 1 < len(ks) else None
+            yield current
 
 
 def check_times(dataset: Dataset, frames: range) -> None:
