@@ -38,9 +38,12 @@ import json
 import os
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from contextlib import closing
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -56,6 +59,7 @@ from gloam_jax.odometry import FrameStatus, Odometry, OdometryConfig
 from gloam_jax.preprocess import ONE_INSTANT, check_units, detect_time_convention, resolve_deskew
 from gloam_jax.sensor import SENSOR_SCANS
 
+Item = TypeVar("Item")
 FLUSH_EVERY = 100  # frames between two writes of the poses and the checkpoint
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_VERSION = 1
@@ -136,9 +140,11 @@ def run_dataset(
     by the data (:func:`plan_deskew`), the model (or the guard's plain GICP) by the first
     scans' sensor (:func:`choose_model`). Learned methods get per-point features from the
     model's backbone, or from one file per scan in ``features_dir`` (the ``precomputed``
-    backbone). ``progress(k, ms)`` after the k-th frame. The time per frame counts
-    registration only; feature extraction is timed separately (``median_ms_features``), and
-    each frame's time by stage (loading included) is in its ``stage_ms``.
+    backbone). ``progress(k, ms)`` after the k-th frame. The next scan is read and
+    its features computed on a worker thread while a frame registers. The time per frame
+    counts registration only; feature extraction is timed separately (``median_ms_features``),
+    the loop's wall time per frame, everything overlapped, is ``wall_ms_per_frame``, and each
+    frame's time by stage (loading included) is in its ``stage_ms``.
 
     Poses, frame flags and a checkpoint of the odometry are written every ``flush_every``
     frames, each file atomically; on SIGINT or SIGTERM after the frame in progress, with
@@ -186,24 +192,36 @@ def run_dataset(
         if odometry.poses and odometry.resumable:  # else nothing final yet: frames 0 and 1
             save_progress(files, odometry, config, record, {**status, **extra})
 
-    with stop_between(signal.SIGINT, signal.SIGTERM) as pending:
-        for k in range(len(odometry.poses), n):
+    def fetch(k: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict]:
+        """Frame k's scan, point times and features (where the method needs them), and the
+        milliseconds its loading and features took. Runs on the prefetch thread."""
+        i, path = frames[k], dataset.scan_path(frames[k])
+        t0 = time.perf_counter()
+        scan, point_times = dataset.frame(i)
+        if k:  # frame 0 was checked before the run
+            check_units(scan, config.preprocess, path)
+        ms = {"load": 1e3 * (time.perf_counter() - t0)}
+        features = None
+        if backbone is not None:
+            t0 = time.perf_counter()
+            features = backbone(scan, path=path, frame=i)
+            ms["features"] = 1e3 * (time.perf_counter() - t0)
+        return scan, point_times, features, ms
+
+    start = len(odometry.poses)
+    loop_start = time.perf_counter()
+    with (
+        stop_between(signal.SIGINT, signal.SIGTERM) as pending,
+        closing(prefetched(fetch, range(start, n))) as inputs,
+    ):
+        for k, current in zip(range(start, n), inputs, strict=True):
             i = frames[k]
             path = dataset.scan_path(i)
             frame_dt = (
                 float(times[i] - times[frames[k - 1]]) if k else config.preprocess.sweep_duration
             )
             try:  # the scan, and its features where the method needs them
-                with odometry.timer("load"):
-                    scan, point_times = dataset.frame(i)
-                    if k:  # frame 0 was checked before the run
-                        check_units(scan, config.preprocess, path)
-                features = None
-                if backbone is not None:
-                    t0 = time.perf_counter()
-                    with odometry.timer("features"):
-                        features = backbone(scan, path=path, frame=i)
-                    feature_ms.append(1e3 * (time.perf_counter() - t0))
+                scan, point_times, features, ms = current.result()
             except InputError as err:
                 if on_bad_scan == "stop":
                     save({"status": "stopped", "error": str(err)})
@@ -214,6 +232,10 @@ def run_dataset(
                 record["skipped"].append(k)
                 odometry.register_frame(None, None, frame_dt, source=f"skipped: {err}")
             else:
+                for stage, stage_ms in ms.items():
+                    odometry.timer.add(stage, stage_ms)
+                if "features" in ms:
+                    feature_ms.append(ms["features"])
                 if k == 0 and backbone is not None:
                     warning = intensity_warning(backbone, odometry.model.pca, scan)
                     record["warnings"] += [] if warning is None else [warning]
@@ -232,9 +254,26 @@ def run_dataset(
                 save({"status": "running", "pid": os.getpid()})
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
+    if n > start:  # this process's frames (a resumed run: those after the checkpoint)
+        # what keeps up with the sensor: reading, features and registration, overlapped
+        extra["wall_ms_per_frame"] = 1e3 * (time.perf_counter() - loop_start) / (n - start)
     result = write_run(files, odometry, config, frame_ms, extra)
     (out / CHECKPOINT).unlink(missing_ok=True)
     return result
+
+
+def prefetched(fetch: Callable[[int], Item], ks: range) -> Iterator[Future[Item]]:
+    """``fetch(k)`` for each k of ``ks``, in order, as futures: the next one runs on a worker
+    thread while the caller handles the current one. The odometry's input (reading a scan,
+    the backbone's features) is NumPy and scipy code that releases the GIL, so on two cores it
+    overlaps the registration instead of adding to it. Leaving the loop early waits for the
+    one fetch in flight."""
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="prefetch") as pool:
+        ahead = pool.submit(fetch, ks[0]) if len(ks) else None
+        for j in range(len(ks)):
+            current = ahead
+            ahead = pool.submit(fetch, ks[j + 1]) if j + 1 < len(ks) else None
+            yield current
 
 
 def check_times(dataset: Dataset, frames: range) -> None:

@@ -4,8 +4,9 @@ A :class:`StageTimer` adds up the stages of the frame in progress; the odometry 
 with the frame's status (``FrameStatus.stage_ms``) and starts the next frame from zero. The
 stages, in the order a frame meets them:
 
-* ``load``: reading the scan file and checking it (the caller's, :mod:`gloam_jax.pipeline`);
-* ``features``: the backbone's per-point features, for the learned methods (the caller's);
+* ``load``: reading the scan file and checking it (:mod:`gloam_jax.pipeline`'s prefetch
+  thread, while the frame before registers);
+* ``features``: the backbone's per-point features, for the learned methods (the same thread);
 * ``preprocess``: cleaning, cropping, voxel grid, deskew;
 * ``neighbours``: the host's k-d trees: the scan's tree and k-NN for its covariances, each
   round's candidate query, the degeneracy check's nearest neighbours;
@@ -55,6 +56,10 @@ class StageTimer:
 
     def __call__(self, stage: str) -> _Span:
         return _Span(self, stage)
+
+    def add(self, stage: str, ms: float) -> None:
+        """Add ``ms`` measured elsewhere (another thread's work for this frame) to ``stage``."""
+        self.ms[stage] = self.ms.get(stage, 0.0) + ms
 
     def take(self, total_ms: float | None = None) -> dict[str, float]:
         """Every stage's milliseconds so far (0 for those not met), to 0.01 ms, and back to

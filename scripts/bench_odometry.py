@@ -14,7 +14,10 @@ scans, in order, with the same number of threads:
 * ``kiss-icp``: KISS-ICP with its default configuration, deskew on (times in [0, 1]).
 
 Prints t_err (%), r_err (deg/100 m) with the KITTI devkit metric in the camera-0 frame, and the
-median milliseconds per frame; counts JAX compilations after the first 20 frames. For this
+median milliseconds per frame of registration; for this project's methods also the wall time
+per frame of the whole loop (reading, features and registration, the next scan read and its
+features computed while a frame registers, as in ``gloam run``); counts JAX compilations after
+the first 20 frames. For this
 project's methods, a second table breaks a frame down by stage (``gloam_jax.timing``: load,
 features, preprocess, neighbours, covariances, solve, map, other), each stage's median and 95th
 percentile in ms over the frames after the first two (``stage_ms`` in the ``--out`` file).
@@ -50,6 +53,7 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
     import dataclasses
 
     from gloam_jax.odometry import Odometry
+    from gloam_jax.pipeline import prefetched
 
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
@@ -58,21 +62,32 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
     if odometry.needs_features:
         backbone = odometry.model.backbone()
     times, ms, feature_ms, late_compiles = seq.times, [], [], 0
-    for i in range(n):
-        with odometry.timer("load"):
-            scan, point_times = seq.scan(i), seq.point_times(i)
-        dt = float(times[i] - times[i - 1]) if i else 0.1
-        features = None
+
+    def fetch(i: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict]:
+        t0 = time.perf_counter()
+        scan, point_times = seq.scan(i), seq.point_times(i)
+        stage_ms, features = {"load": 1e3 * (time.perf_counter() - t0)}, None
         if backbone is not None:
             t0 = time.perf_counter()
-            with odometry.timer("features"):
-                features = backbone(scan, path=seq.scan_path(i), frame=i)
-            feature_ms.append(1e3 * (time.perf_counter() - t0))
+            features = backbone(scan, path=seq.scan_path(i), frame=i)
+            stage_ms["features"] = 1e3 * (time.perf_counter() - t0)
+        return scan, point_times, features, stage_ms
+
+    # as gloam run does: the next scan and its features on a worker thread (pipeline.prefetched)
+    loop_start = time.perf_counter()
+    for i, fetched in enumerate(prefetched(fetch, range(n))):
+        scan, point_times, features, stage_ms = fetched.result()
+        for stage, stage_time in stage_ms.items():
+            odometry.timer.add(stage, stage_time)
+        if "features" in stage_ms:
+            feature_ms.append(stage_ms["features"])
+        dt = float(times[i] - times[i - 1]) if i else 0.1
         if i == 20:
             late_compiles = counter.count
         t0 = time.perf_counter()
         odometry.register_frame(scan, point_times, dt, features=features)
         ms.append(1e3 * (time.perf_counter() - t0))
+    wall_ms = 1e3 * (time.perf_counter() - loop_start) / n
     extra = {
         "compiles_after_frame_20": counter.count - late_compiles if n > 20 else None,
         "rounds_per_frame": float(np.mean([s.iterations for s in odometry.status[1:]])),
@@ -80,6 +95,8 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         "thinned_points": int(sum(s.num_thinned for s in odometry.status)),
         # frames 0 and 1 left out: the first compilations, and frame 1 redoes both
         "stage_ms": timing.summarise(s.stage_ms for s in odometry.status[2 if n > 3 else 0 :]),
+        # everything a frame needs, overlapped: what must stay under the sensor's period
+        "wall_ms_per_frame": wall_ms,
     }
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
@@ -196,16 +213,18 @@ def main() -> None:
             io.write_atomic(args.out, json.dumps(results, indent=2))
 
     print(
-        "\n| sequence | method | t_err (%) | r_err (deg/100 m) | median ms/frame | vs small_gicp |"
+        "\n| sequence | method | t_err (%) | r_err (deg/100 m) | median ms/frame | vs small_gicp "
+        "| wall ms/frame |"
     )
-    print("|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|")
     for key, r in results.items():
         name, method = key.split("/")
         peer = results.get(f"{name}/small_gicp")
         ratio = f"{r['median_ms_per_frame'] / peer['median_ms_per_frame']:.1f}x" if peer else "-"
+        wall = f"{r['wall_ms_per_frame']:.1f}" if "wall_ms_per_frame" in r else "-"
         print(
             f"| {name} | {method} | {r['t_err_percent']:.2f} | {r['r_err_deg_per_100m']:.2f} | "
-            f"{r['median_ms_per_frame']:.1f} | {ratio} |"
+            f"{r['median_ms_per_frame']:.1f} | {ratio} | {wall} |"
         )
     if any(r.get("stage_ms") for r in results.values()):
         print("\n" + stage_table(results))

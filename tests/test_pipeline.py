@@ -1,5 +1,6 @@
 """Long recordings through `gloam run`: kills and resumes, bad scans, gaps, time and units."""
 
+import dataclasses
 import json
 import random
 import shutil
@@ -269,3 +270,29 @@ def test_a_run_records_each_frames_stages_and_their_median_and_p95(sim_sequence,
         assert summary["p95"] == pytest.approx(np.percentile(later, 95), abs=0.01)
     old = {k: v for k, v in flags[3].items() if k != "stage_ms"}
     assert FrameStatus(**old).stage_ms == {}
+
+
+def test_prefetched_scans_and_features_give_the_poses_of_a_frame_by_frame_loop(
+    sim_sequence, tmp_path
+):
+    """The run reads scan k+1 and computes its features on a worker thread while scan k
+    registers; the poses are those of the plain loop, and the worker's load and features
+    times land in each frame's stages."""
+    from gloam_jax.config import load_config
+    from gloam_jax.models import load_model, shipped_model_path
+    from gloam_jax.odometry import Odometry
+
+    model_path = shipped_model_path("hdl64")
+    config = dataclasses.replace(load_config("gloam"), model=str(model_path))
+    dataset = open_dataset(sim_sequence, "00")
+    result = run_dataset(dataset, config, tmp_path / "run", select_frames(40, 0, 6))
+    model = load_model(model_path)
+    odometry, backbone = Odometry(config, model), model.backbone()
+    for i in range(6):
+        scan, point_times = dataset.frame(i)
+        frame_dt = float(dataset.times[i] - dataset.times[i - 1]) if i else 0.1
+        odometry.register_frame(scan, point_times, frame_dt, features=backbone(scan))
+    np.testing.assert_array_equal(_lidar_poses(tmp_path / "run"), np.stack(odometry.poses))
+    flags = json.loads((tmp_path / "run" / "frames.json").read_text())
+    assert all(f["stage_ms"]["features"] > 0 and f["stage_ms"]["load"] > 0 for f in flags)
+    assert result["median_ms_features"] > 0 and result["wall_ms_per_frame"] > 0
