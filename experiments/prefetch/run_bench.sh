@@ -4,7 +4,8 @@
 # checkout), alternated over two repetitions; then small_gicp on the same frames for scale.
 #   bash experiments/prefetch/run_bench.sh /work/wt42b . data/long experiments/prefetch/bench
 set -euo pipefail
-BEFORE=$1 AFTER=$2 DATA=$3 OUT=$4 RUNS=${RUNS:-/tmp/prefetch_runs}
+BEFORE=$(realpath "$1") AFTER=$(realpath "$2") DATA=$(realpath "$3") OUT=$4
+RUNS=${RUNS:-/tmp/prefetch_runs}
 mkdir -p "$OUT" "$RUNS"
 for rep in 1 2; do
   for code in before after; do
@@ -12,8 +13,9 @@ for rep in 1 2; do
     for method in gicp gloam; do
       run="$RUNS/$code-$method-$rep"
       start=$(date +%s.%N)
-      PYTHONPATH="$tree" python -m gloam_jax run "$DATA" --sequence 403 --frames 300 \
-        --method "$method" --out "$run" > /dev/null 2>&1
+      # run from the checkout itself: python -m puts the working folder first on the path
+      (cd "$tree" && PYTHONPATH="$tree" python -m gloam_jax run "$DATA" --sequence 403 \
+        --frames 300 --method "$method" --out "$run" > /dev/null 2>&1)
       end=$(date +%s.%N)
       echo "$rep $code $method $(python -c "print(round($end - $start, 2))")" | tee -a "$OUT/wall.txt"
     done
