@@ -60,6 +60,8 @@ from gloam_jax.preprocess import ONE_INSTANT, check_units, detect_time_conventio
 from gloam_jax.sensor import SENSOR_SCANS
 
 Item = TypeVar("Item")
+# a frame's scan (N, 4), point times (N,) or None, features (N, D) or None, ms per stage
+FrameInput = tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict[str, float]]
 FLUSH_EVERY = 100  # frames between two writes of the poses and the checkpoint
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_VERSION = 1
@@ -192,21 +194,17 @@ def run_dataset(
         if odometry.poses and odometry.resumable:  # else nothing final yet: frames 0 and 1
             save_progress(files, odometry, config, record, {**status, **extra})
 
-    def fetch(k: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict]:
-        """Frame k's scan, point times and features (where the method needs them), and the
-        milliseconds its loading and features took. Runs on the prefetch thread."""
+    def fetch(k: int) -> FrameInput:
+        """Frame k's input (:func:`timed_input`). Runs on the prefetch thread."""
         i, path = frames[k], dataset.scan_path(frames[k])
-        t0 = time.perf_counter()
-        scan, point_times = dataset.frame(i)
-        if k:  # frame 0 was checked before the run
-            check_units(scan, config.preprocess, path)
-        ms = {"load": 1e3 * (time.perf_counter() - t0)}
-        features = None
-        if backbone is not None:
-            t0 = time.perf_counter()
-            features = backbone(scan, path=path, frame=i)
-            ms["features"] = 1e3 * (time.perf_counter() - t0)
-        return scan, point_times, features, ms
+
+        def read() -> tuple[np.ndarray, np.ndarray | None]:
+            scan, point_times = dataset.frame(i)
+            if k:  # frame 0 was checked before the run
+                check_units(scan, config.preprocess, path)
+            return scan, point_times
+
+        return timed_input(read, backbone, path, i)
 
     start = len(odometry.poses)
     loop_start = time.perf_counter()
@@ -260,6 +258,25 @@ def run_dataset(
     result = write_run(files, odometry, config, frame_ms, extra)
     (out / CHECKPOINT).unlink(missing_ok=True)
     return result
+
+
+def timed_input(
+    read: Callable[[], tuple[np.ndarray, np.ndarray | None]],
+    backbone: Backbone | None,
+    path: str | os.PathLike[str],
+    frame: int,
+) -> FrameInput:
+    """A frame's scan and point times from ``read()``, its features where ``backbone`` is
+    given (None otherwise), and the milliseconds each took (stages ``load``, ``features``)."""
+    t0 = time.perf_counter()
+    scan, point_times = read()
+    ms = {"load": 1e3 * (time.perf_counter() - t0)}
+    features = None
+    if backbone is not None:
+        t0 = time.perf_counter()
+        features = backbone(scan, path=path, frame=frame)
+        ms["features"] = 1e3 * (time.perf_counter() - t0)
+    return scan, point_times, features, ms
 
 
 def prefetched(fetch: Callable[[int], Item], ks: range) -> Iterator[Future[Item]]:

@@ -53,7 +53,7 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
     import dataclasses
 
     from gloam_jax.odometry import Odometry
-    from gloam_jax.pipeline import prefetched
+    from gloam_jax.pipeline import prefetched, timed_input
 
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
@@ -63,15 +63,8 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         backbone = odometry.model.backbone()
     times, ms, feature_ms, late_compiles = seq.times, [], [], 0
 
-    def fetch(i: int) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict]:
-        t0 = time.perf_counter()
-        scan, point_times = seq.scan(i), seq.point_times(i)
-        stage_ms, features = {"load": 1e3 * (time.perf_counter() - t0)}, None
-        if backbone is not None:
-            t0 = time.perf_counter()
-            features = backbone(scan, path=seq.scan_path(i), frame=i)
-            stage_ms["features"] = 1e3 * (time.perf_counter() - t0)
-        return scan, point_times, features, stage_ms
+    def fetch(i: int):
+        return timed_input(lambda: (seq.scan(i), seq.point_times(i)), backbone, seq.scan_path(i), i)
 
     # as gloam run does: the next scan and its features on a worker thread (pipeline.prefetched)
     loop_start = time.perf_counter()
