@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "scripts"))
-from make_tables import gains, summarize  # noqa: E402
+from make_tables import gains, gains_markdown, summarize  # noqa: E402
 
 SEED_2 = "seed 2 (gloam_hdl64.npz, via model: default)"
 
@@ -51,13 +51,7 @@ def main() -> None:
     for row in record["per_run_ratio"]:
         cells = [f"{100 * (row['ratio'][w] - 1):+.1f} %" for w in worlds]
         lines.append(f"| {row['model']} | {row['data']} | " + " | ".join(cells) + " |")
-    lines += ["", "| group | gain against GICP | 95 % interval | cells > 2 % worse |",
-              "|---|---|---|---|"]  # fmt: skip
-    for name, g in record["gains"]["groups"].items():
-        low, high = (100 * x for x in g["interval"])
-        worse = f"{g['cells_worse']} of {g['cells']}"
-        lines.append(f"| {name} ({', '.join(g['worlds'])}) | {100 * g['gain']:+.1f} % | "
-                     f"{low:+.1f} to {high:+.1f} % | {worse} |")  # fmt: skip
+    lines += gains_markdown("GLOAM (a)", record["gains"])
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
