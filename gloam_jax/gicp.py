@@ -46,6 +46,9 @@ class GICPConfig:
     num_candidates: int = 1  # target candidates per source point, chosen among in JAX
     max_iterations: int = 20  # outer rounds, each refreshing the candidate sets
     inner_steps: int = 2  # LM steps per round
+    # A round queries the target's tree again only once a source point may have moved this far
+    # (m) since the candidates were found; until then it keeps them (0: every round queries).
+    requery_shift: float = 0.0
     rotation_eps: float = float(np.deg2rad(0.1))  # convergence: rotation update below (rad)
     translation_eps: float = 1e-3  # and translation update below (m)
     adjoint: Literal["unrolled", "implicit"] = "unrolled"  # differentiation through LM
@@ -61,6 +64,9 @@ class GICPConfig:
         for name in ("max_correspondence_distance", "rotation_eps", "translation_eps",
                      "degeneracy_threshold", "degeneracy_support", "lever_arm"):  # fmt: skip
             check_setting(is_positive(v := getattr(self, name)), f"gicp.{name}", "positive", v)
+        shift = self.requery_shift
+        ok = shift == 0 or is_positive(shift)
+        check_setting(ok, "gicp.requery_shift", "a number >= 0", shift)
         for name in ("num_candidates", "max_iterations"):
             check_setting(is_int(v := getattr(self, name), 1), f"gicp.{name}", "an integer >= 1", v)
         # optimistix's LM spends its first step initialising, so one step never moves.

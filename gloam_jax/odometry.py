@@ -83,6 +83,7 @@ class FrameStatus:
     # for the reports that count it (metrics.json thinned_points) and older frames.json files.
     num_thinned: int = 0
     iterations: int = 0
+    queries: int = 0  # the target's k-d tree queried (rounds that found new candidates, rows)
     num_inliers: int = 0
     # GICP's cost per inlier at the solution (mean squared whitened residual): how well the
     # scan fits its target; comparable between settings on the same scans, not across scans
@@ -416,6 +417,7 @@ class Odometry:
             T_world_target, sizes, prior = np.eye(4), (scan_size, self.map.size), T_pred
         result = align_prepared(target, cloud, prior, cfg.gicp, sizes, timer=timer)
         status.iterations, status.num_inliers = result.iterations, result.num_inliers
+        status.queries = result.queries
         if result.num_inliers:  # without inliers the fit is unknown, not perfect
             status.residual = result.error / result.num_inliers
         status.converged = result.converged

@@ -89,6 +89,7 @@ class RegistrationResult(NamedTuple):
     condition: float
     weak_directions: np.ndarray
     support: float
+    queries: int = 0  # the target's k-d tree queried (rounds that refreshed candidates, rows)
 
     @property
     def degenerate(self) -> bool:
@@ -96,11 +97,16 @@ class RegistrationResult(NamedTuple):
 
 
 def constraint_rows(
-    target: PreparedCloud, source: PreparedCloud, T: np.ndarray, max_distance: float
+    target: PreparedCloud,
+    source: PreparedCloud,
+    T: np.ndarray,
+    max_distance: float,
+    nearest: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """How the scene's surfaces constrain ``T_target_source``: point-to-plane rows (N, 6) over
     the increment of :func:`gloam_jax.gicp.retract`, each source point paired with its nearest
-    target point within ``max_distance``, and their weights (N,), that point's planarity.
+    target point within ``max_distance`` (or ``nearest``: indices (N,) and found (N,) from a
+    query near ``T``), and their weights (N,), that point's planarity.
 
     Unlike GICP's own H they carry none of the plane regulariser's in-plane weight, which
     gives a tunnel's axis as much information as a healthy drive's weakest direction, and the
@@ -108,8 +114,10 @@ def constraint_rows(
     which move with the sensor and would pin it in place.
     """
     moved = source.points @ T[:3, :3].T + T[:3, 3]
-    index, found = target.tree.query(moved, 1, max_distance)
-    index, found = index[:, 0], found[:, 0]
+    if nearest is None:
+        index, found = target.tree.query(moved, 1, max_distance)
+        nearest = index[:, 0], found[:, 0]
+    index, found = nearest
     if target.normals is None:
         normals = np.linalg.eigh(target.covs[index])[1][..., 0]
         weight = found.astype(np.float64)
@@ -223,47 +231,66 @@ def align_prepared(
             src, tgt = source.padded(sizes[0]), target.padded(sizes[1])
     size = src.points.shape[0]
     max_d2 = jnp.asarray(config.max_correspondence_distance**2, dtype=geo.real_dtype())
-    converged, iterations = False, 0
+    converged, iterations, queries = False, 0, 0
+    T_query = None  # where the candidates were found
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007
         with timer("neighbours"):
-            moved = source.points @ T[:3, :3].T + T[:3, 3]
-            cand, valid = target.tree.query(
-                moved, config.num_candidates, config.max_correspondence_distance
-            )
-            cand, valid = pc.pad(cand, size)[0], pc.pad(valid, size)[0]
+            if T_query is None or not _kept(T_query, T, source.radius, config.requery_shift):
+                moved = source.points @ T[:3, :3].T + T[:3, 3]
+                found = target.tree.query(
+                    moved, config.num_candidates, config.max_correspondence_distance
+                )
+                cand, valid = (jnp.asarray(pc.pad(x, size)[0]) for x in found)
+                T_query, queries = T, queries + 1
         with timer("solve"):  # dispatch, then the wait for the results np.asarray reads
             _, xi, system = solve_round(
                 jnp.asarray(T, dtype=geo.real_dtype()),
                 src,
                 tgt,
-                jnp.asarray(cand),
-                jnp.asarray(valid),
+                cand,
+                valid,
                 max_d2,
                 config.inner_steps,
                 config.adjoint,
             )
             # Compose in float64 on the host so that many rounds do not accumulate float32
             # error.
-            T_round, T = T, retract_host(np.asarray(xi, np.float64), T)
+            T = retract_host(np.asarray(xi, np.float64), T)
             H, b, error, inliers = (np.asarray(x, np.float64) for x in system)
             # Converged when the next Gauss-Newton step would be below the thresholds
             # (small_gicp's criterion), provided the candidates are still fresh: no point moved
             # farther than a tenth of the correspondence distance since they were found.
             step = _gauss_newton_step(H, b)
-            shift = _largest_shift(T_round, T, source.radius)
+            shift = _largest_shift(T_query, T, source.radius)
             fresh = shift < 0.1 * config.max_correspondence_distance
             small = np.linalg.norm(step[3:]) < config.rotation_eps
         if inliers > 0 and fresh and small and np.linalg.norm(step[:3]) < config.translation_eps:
             converged = True
             break
     with timer("neighbours"):
-        rows, weight = constraint_rows(target, source, T, config.max_correspondence_distance)
+        # The last candidates' nearest (the query sorts them) serve while they are kept.
+        kept = _kept(T_query, T, source.radius, config.requery_shift)
+        nearest = (found[0][:, 0], found[1][:, 0]) if kept else None
+        rows, weight = constraint_rows(
+            target, source, T, config.max_correspondence_distance, nearest
+        )
+        queries += not kept
     with timer("solve"):
         condition, weak, support = conditioning(
             rows, weight, config.lever_arm, config.degeneracy_threshold, config.degeneracy_support
         )
     return RegistrationResult(
-        T, converged, iterations, int(inliers), H, b, float(error), condition, weak, support
+        T,
+        converged,
+        iterations,
+        int(inliers),
+        H,
+        b,
+        float(error),
+        condition,
+        weak,
+        support,
+        queries,
     )
 
 
@@ -273,6 +300,12 @@ def _largest_shift(T_from: np.ndarray, T_to: np.ndarray, radius: float) -> float
     D = T_to @ np.linalg.inv(T_from)
     angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
     return float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3]) + angle * radius)
+
+
+def _kept(T_query: np.ndarray, T: np.ndarray, radius: float, requery_shift: float) -> bool:
+    """Whether candidates found at ``T_query`` still serve at ``T`` (no point moved as far as
+    ``requery_shift``; never where it is 0)."""
+    return _largest_shift(T_query, T, radius) < requery_shift
 
 
 def _gauss_newton_step(H: np.ndarray, b: np.ndarray) -> np.ndarray:

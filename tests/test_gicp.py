@@ -121,6 +121,25 @@ def test_candidate_choice_in_jax_matches_nearest_neighbour():
     assert dt < 0.005 and dr < 0.02
 
 
+def test_kept_candidates_save_queries_and_reach_the_same_transform():
+    """With requery_shift, rounds whose points moved less keep their candidates (and the
+    conditioning reuses their nearest): fewer k-d tree queries, the same answer; 0 queries
+    every round and once more for the conditioning."""
+    target = structured_scene(0)
+    T_true = np.asarray(geo.se3_exp(np.array([0.03, -0.02, 0.0, 0.0, 0.0, 0.002])), np.float64)
+    source = structured_scene(4) @ T_true[:3, :3] - T_true[:3, :3].T @ T_true[:3, 3]
+    every = align(target, source, config=GICPConfig(requery_shift=0.0))
+    kept = align(target, source, config=GICPConfig(requery_shift=0.2))
+    assert every.queries == every.iterations + 1
+    assert kept.queries < every.queries and kept.queries >= 1 and kept.converged
+    dt, dr = transform_error(kept.T_target_source, every.T_target_source)
+    assert dt < 0.002 and dr < 0.01
+    assert transform_error(kept.T_target_source, T_true)[0] < 0.01
+    assert kept.condition == pytest.approx(every.condition, rel=0.05)
+    with pytest.raises(InputError, match="gicp.requery_shift must be a number >= 0"):
+        GICPConfig(requery_shift=-0.1)
+
+
 def test_real_pair_recovers_reference():
     PAIR = shared_path("real_pair")
     target = pc.crop_range(io.read_scan(PAIR / "251370668.pcd"), 0.5, 200.0)
