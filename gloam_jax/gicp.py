@@ -37,6 +37,10 @@ from gloam_jax import association
 from gloam_jax import geometry as geo
 from gloam_jax.errors import check_setting, is_int, is_positive
 
+# Candidates found before the points moved at most this share of the correspondence distance
+# are fresh: a round may converge on them (registration.align_prepared).
+FRESH = 0.1
+
 
 @dataclass(frozen=True)
 class GICPConfig:
@@ -48,6 +52,7 @@ class GICPConfig:
     inner_steps: int = 2  # LM steps per round
     # A round queries the target's tree again only once a source point may have moved this far
     # (m) since the candidates were found; until then it keeps them (0: every round queries).
+    # At most FRESH x max_correspondence_distance, where convergence counts them as fresh.
     requery_shift: float = 0.0
     rotation_eps: float = float(np.deg2rad(0.1))  # convergence: rotation update below (rad)
     translation_eps: float = 1e-3  # and translation update below (m)
@@ -64,9 +69,9 @@ class GICPConfig:
         for name in ("max_correspondence_distance", "rotation_eps", "translation_eps",
                      "degeneracy_threshold", "degeneracy_support", "lever_arm"):  # fmt: skip
             check_setting(is_positive(v := getattr(self, name)), f"gicp.{name}", "positive", v)
-        shift = self.requery_shift
-        ok = shift == 0 or is_positive(shift)
-        check_setting(ok, "gicp.requery_shift", "a number >= 0", shift)
+        shift, fresh = self.requery_shift, FRESH * self.max_correspondence_distance
+        ok = shift == 0 or (is_positive(shift) and shift <= fresh)
+        check_setting(ok, "gicp.requery_shift", f"between 0 and {fresh:g} m", shift)
         for name in ("num_candidates", "max_iterations"):
             check_setting(is_int(v := getattr(self, name), 1), f"gicp.{name}", "an integer >= 1", v)
         # optimistix's LM spends its first step initialising, so one step never moves.

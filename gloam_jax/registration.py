@@ -20,7 +20,7 @@ from gloam_jax import covariance as cov
 from gloam_jax import geometry as geo
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
-from gloam_jax.gicp import Cloud, GICPConfig, retract_host, solve_round
+from gloam_jax.gicp import FRESH, Cloud, GICPConfig, retract_host, solve_round
 from gloam_jax.learned import Learned, cloud_attributes
 from gloam_jax.neighbors import KdTree
 from gloam_jax.timing import StageTimer
@@ -262,7 +262,7 @@ def align_prepared(
             # farther than a tenth of the correspondence distance since they were found.
             step = _gauss_newton_step(H, b)
             shift = _largest_shift(T_query, T, source.radius)
-            fresh = shift < 0.1 * config.max_correspondence_distance
+            fresh = shift < FRESH * config.max_correspondence_distance
             small = np.linalg.norm(step[3:]) < config.rotation_eps
         if inliers > 0 and fresh and small and np.linalg.norm(step[:3]) < config.translation_eps:
             converged = True

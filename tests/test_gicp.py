@@ -129,15 +129,16 @@ def test_kept_candidates_save_queries_and_reach_the_same_transform():
     T_true = np.asarray(geo.se3_exp(np.array([0.03, -0.02, 0.0, 0.0, 0.0, 0.002])), np.float64)
     source = structured_scene(4) @ T_true[:3, :3] - T_true[:3, :3].T @ T_true[:3, 3]
     every = align(target, source, config=GICPConfig(requery_shift=0.0))
-    kept = align(target, source, config=GICPConfig(requery_shift=0.2))
+    kept = align(target, source, config=GICPConfig(requery_shift=0.1))
     assert every.queries == every.iterations + 1
     assert kept.queries < every.queries and kept.queries >= 1 and kept.converged
     dt, dr = transform_error(kept.T_target_source, every.T_target_source)
     assert dt < 0.002 and dr < 0.01
     assert transform_error(kept.T_target_source, T_true)[0] < 0.01
     assert kept.condition == pytest.approx(every.condition, rel=0.05)
-    with pytest.raises(InputError, match="gicp.requery_shift must be a number >= 0"):
-        GICPConfig(requery_shift=-0.1)
+    for bad in (-0.1, 0.2):  # kept candidates must still count as fresh (0.1 x 1 m)
+        with pytest.raises(InputError, match="gicp.requery_shift must be between 0 and 0.1 m"):
+            GICPConfig(requery_shift=bad)
 
 
 def test_real_pair_recovers_reference():
