@@ -1,6 +1,8 @@
-"""Odometry accuracy and speed: this project's GICP against small_gicp and KISS-ICP.
+"""Odometry accuracy and speed: this project's methods against small_gicp, KISS-ICP, GenZ-ICP.
 
     python scripts/bench_odometry.py DATA --sequences 07 05 01 --threads 2 --out bench.json
+    python scripts/bench_odometry.py DATA --sequences 403 --isolate \
+        --methods gicp,gicp_da,gicp_ce,gloam,gloam_net,small_gicp,kiss-icp,genz-icp
 
 DATA is a KITTI-layout root (real or from ``gloam simulate``). Every method gets the same raw
 scans, in order, with the same number of threads:
@@ -11,7 +13,15 @@ scans, in order, with the same number of threads:
   extraction is timed apart from registration (``median_ms_features``);
 * ``small_gicp``: its documented scan-to-model odometry (VGICP on a GaussianVoxelMap of 1 m
   voxels with an LRU horizon, 0.25 m downsampling, constant-velocity guess), no deskew;
-* ``kiss-icp``: KISS-ICP with its default configuration, deskew on (times in [0, 1]).
+* ``kiss-icp``: KISS-ICP with its default configuration, deskew on (times in [0, 1]);
+* ``genz-icp``: GenZ-ICP with its default configuration, deskew on (azimuth times in [0, 1]),
+  ``genz-icp-kitti`` with the KITTI preset it ships.
+
+Every method's frame time (``frame_ms``: median and p95) is the loop's wall time per frame,
+the scan's reading included (and, for the learned methods, the features); ``--isolate`` runs
+each method in processes of its own and adds the whole process's wall time and peak memory
+(``process_s``, ``peak_mib``): first with an empty JAX compilation cache, then with the cache
+that run filled (the peers compile nothing: one run).
 
 Prints t_err (%), r_err (deg/100 m) with the KITTI devkit metric in the camera-0 frame, and the
 median milliseconds per frame of registration; for this project's methods also the wall time
@@ -29,7 +39,11 @@ import argparse
 import json
 import logging
 import os
+import subprocess
+import sys
+import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -67,7 +81,8 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         return timed_input(lambda: (seq.scan(i), seq.point_times(i)), backbone, seq.scan_path(i), i)
 
     # as gloam run does: the next scan and its features on a worker thread (pipeline.prefetched)
-    loop_start = time.perf_counter()
+    loop_start = last = time.perf_counter()
+    frame_ms = []
     for i, fetched in enumerate(prefetched(fetch, range(n))):
         scan, point_times, features, stage_ms = fetched.result()
         for stage, stage_time in stage_ms.items():
@@ -80,6 +95,8 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         t0 = time.perf_counter()
         odometry.register_frame(scan, point_times, dt, features=features)
         ms.append(1e3 * (time.perf_counter() - t0))
+        frame_ms.append(1e3 * (time.perf_counter() - last))
+        last = time.perf_counter()
     wall_ms = 1e3 * (time.perf_counter() - loop_start) / n
     extra = {
         "compiles_after_frame_20": counter.count - late_compiles if n > 20 else None,
@@ -90,6 +107,8 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         "stage_ms": timing.summarise(s.stage_ms for s in odometry.status[2 if n > 3 else 0 :]),
         # everything a frame needs, overlapped: what must stay under the sensor's period
         "wall_ms_per_frame": wall_ms,
+        "frame_ms": frame_summary(frame_ms),
+        "queries_per_frame": float(np.mean([s.queries for s in odometry.status[1:]])),
     }
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
@@ -102,8 +121,9 @@ def run_small_gicp(seq: io.KittiSequence, n: int, threads: int):
     voxelmap = small_gicp.GaussianVoxelMap(1.0)
     voxelmap.set_lru(horizon=100, clear_cycle=10)
     T_world_lidar, T_last_current = np.eye(4), np.eye(4)
-    poses, ms = [], []
+    poses, ms, frame_ms = [], [], []
     for i in range(n):
+        start = time.perf_counter()
         raw = seq.scan(i)[:, :3].astype(np.float64)
         t0 = time.perf_counter()
         raw = raw[np.all(np.isfinite(raw), axis=1)]
@@ -116,8 +136,9 @@ def run_small_gicp(seq: io.KittiSequence, n: int, threads: int):
             T_world_lidar = result.T_target_source
         voxelmap.insert(down, T_world_lidar)
         ms.append(1e3 * (time.perf_counter() - t0))
+        frame_ms.append(1e3 * (time.perf_counter() - start))
         poses.append(T_world_lidar.copy())
-    return np.stack(poses), ms, {}
+    return np.stack(poses), ms, {"frame_ms": frame_summary(frame_ms)}
 
 
 def run_kiss(seq: io.KittiSequence, n: int, threads: int):
@@ -128,8 +149,9 @@ def run_kiss(seq: io.KittiSequence, n: int, threads: int):
     config.data.deskew = True
     config.registration.max_num_threads = threads
     odometry = KissICP(config)
-    poses, ms = [], []
+    poses, ms, frame_ms = [], [], []
     for i in range(n):
+        start = time.perf_counter()
         scan = seq.scan(i)[:, :3].astype(np.float64)
         point_times = seq.point_times(i)
         if point_times is None:
@@ -139,8 +161,81 @@ def run_kiss(seq: io.KittiSequence, n: int, threads: int):
         t0 = time.perf_counter()
         odometry.register_frame(scan, u)
         ms.append(1e3 * (time.perf_counter() - t0))
+        frame_ms.append(1e3 * (time.perf_counter() - start))
         poses.append(odometry.last_pose.copy())
-    return np.stack(poses), ms, {}
+    return np.stack(poses), ms, {"frame_ms": frame_summary(frame_ms)}
+
+
+def run_genz(seq: io.KittiSequence, n: int, threads: int, preset: str | None = None):
+    """GenZ-ICP: its default configuration with deskew on (azimuth times in [0, 1]), or one
+    of the presets it ships (``kitti``: deskew off, 0.6 m voxels, 5 m minimum range)."""
+    from genz_icp.config import GenZConfig, load_config
+    from genz_icp.genz_icp import GenZICP
+
+    if preset is None:
+        config = GenZConfig()
+        config.data.deskew = True
+    else:
+        config = load_config(Path(preset))
+    config.registration.max_num_threads = threads
+    odometry = GenZICP(config)
+    poses, ms, frame_ms = [], [], []
+    for i in range(n):
+        start = time.perf_counter()
+        scan = seq.scan(i)[:, :3].astype(np.float64)
+        u = 0.5 * (1.0 - np.arctan2(scan[:, 1], scan[:, 0]) / np.pi)
+        t0 = time.perf_counter()
+        odometry.register_frame(scan, u if config.data.deskew else None)
+        ms.append(1e3 * (time.perf_counter() - t0))
+        frame_ms.append(1e3 * (time.perf_counter() - start))
+        poses.append(odometry.last_pose.copy())
+    return np.stack(poses), ms, {"frame_ms": frame_summary(frame_ms)}
+
+
+PEERS = {  # name -> runner (seq, frames, threads)
+    "small_gicp": run_small_gicp,
+    "kiss-icp": run_kiss,
+    "genz-icp": run_genz,
+    "genz-icp-kitti": partial(run_genz, preset="kitti"),
+}
+
+
+def frame_summary(frame_ms: list[float]) -> dict:
+    """Median and p95 of a run's frame times (ms), frames 0 and 1 left out (the first
+    compilations, and frame 1 redoes both in this project's odometry)."""
+    kept = np.asarray(frame_ms[2:] if len(frame_ms) > 3 else frame_ms)
+    return {"median": float(np.median(kept)), "p95": float(np.percentile(kept, 95))}
+
+
+def isolated(args: argparse.Namespace, name: str, method: str) -> dict:
+    """``method`` on sequence ``name`` in processes of its own (this script, one method): first
+    with an empty compilation cache, then (this project's methods) with the cache it filled.
+    The cached run's entry, with each run's whole-process wall time (s) and peak memory (MiB)."""
+    runs: dict[str, dict] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for label in ("first", "cached"):
+            out = Path(tmp) / f"{label}.json"
+            cmd = [sys.executable, __file__, str(args.data), "--sequences", name,
+                   "--methods", method, "--threads", str(args.threads),
+                   "--configs", str(args.configs), "--out", str(out)]  # fmt: skip
+            cmd += [] if args.frames is None else ["--frames", str(args.frames)]
+            cmd += [] if args.weights is None else ["--weights", str(args.weights)]
+            start = time.perf_counter()
+            # the cache under XDG_CACHE_HOME (gloam_jax.cli.common.cache_dir): empty, then filled
+            child = subprocess.Popen(cmd, env={**os.environ, "XDG_CACHE_HOME": tmp},
+                                     stdout=subprocess.DEVNULL)  # fmt: skip
+            _, status, usage = os.wait4(child.pid, 0)
+            seconds = time.perf_counter() - start
+            if os.waitstatus_to_exitcode(status) != 0:
+                raise SystemExit(f"{method} on {name}: its process failed ({' '.join(cmd)})")
+            entry = json.loads(out.read_text())[f"{name}/{method}"]
+            runs[label] = {"entry": entry, "s": seconds, "mib": usage.ru_maxrss / 1024}
+            if method in PEERS:
+                break  # no compilation cache to fill
+    entry = runs.get("cached", runs["first"])["entry"]
+    entry["process_s"] = {label: r["s"] for label, r in runs.items()}
+    entry["peak_mib"] = {label: r["mib"] for label, r in runs.items()}
+    return entry
 
 
 def score(gt: np.ndarray, est: np.ndarray) -> dict:
@@ -167,6 +262,11 @@ def main() -> None:
     parser.add_argument("--weights", type=Path, default=None, help="model for learned methods")
     parser.add_argument("--methods", default="gicp,small_gicp,kiss-icp")
     parser.add_argument("--out", type=Path, default=Path("bench_odometry.json"))
+    parser.add_argument(
+        "--isolate",
+        action="store_true",
+        help="each method in processes of its own: process time, peak memory",
+    )
     args = parser.parse_args()
 
     import jax
@@ -176,6 +276,9 @@ def main() -> None:
     jax.config.update("jax_log_compiles", True)
     logging.getLogger("jax").setLevel(logging.WARNING)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
+    from gloam_jax.cli.common import use_compilation_cache
+
+    use_compilation_cache()  # as gloam run does
 
     results = json.loads(args.out.read_text()) if args.out.exists() else {}
     for name in args.sequences:
@@ -186,10 +289,13 @@ def main() -> None:
             key = f"{name}/{method}"
             if key in results:  # resume: keep what an earlier run measured
                 continue
-            if method == "small_gicp":
-                poses, ms, extra = run_small_gicp(seq, n, args.threads)
-            elif method == "kiss-icp":
-                poses, ms, extra = run_kiss(seq, n, args.threads)
+            if args.isolate:
+                results[key] = isolated(args, name, method)
+                print(key, json.dumps(results[key]), flush=True)
+                io.write_atomic(args.out, json.dumps(results, indent=2))
+                continue
+            if method in PEERS:
+                poses, ms, extra = PEERS[method](seq, n, args.threads)
             else:
                 from gloam_jax.config import load_config
 
@@ -205,22 +311,35 @@ def main() -> None:
             print(key, json.dumps(results[key]), flush=True)
             io.write_atomic(args.out, json.dumps(results, indent=2))
 
-    print(
-        "\n| sequence | method | t_err (%) | r_err (deg/100 m) | median ms/frame | vs small_gicp "
-        "| wall ms/frame |"
-    )
-    print("|---|---|---|---|---|---|---|")
-    for key, r in results.items():
-        name, method = key.split("/")
-        peer = results.get(f"{name}/small_gicp")
-        ratio = f"{r['median_ms_per_frame'] / peer['median_ms_per_frame']:.1f}x" if peer else "-"
-        wall = f"{r['wall_ms_per_frame']:.1f}" if "wall_ms_per_frame" in r else "-"
-        print(
-            f"| {name} | {method} | {r['t_err_percent']:.2f} | {r['r_err_deg_per_100m']:.2f} | "
-            f"{r['median_ms_per_frame']:.1f} | {ratio} | {wall} |"
-        )
+    print("\n" + speed_table(results))
     if any(r.get("stage_ms") for r in results.values()):
         print("\n" + stage_table(results))
+
+
+def speed_table(results: dict) -> str:
+    """Accuracy and speed per entry: frame time (median / p95 ms, reading and features
+    included) and its ratio to small_gicp's median on the same sequence, registration alone
+    (median ms), and with ``--isolate`` the whole process (s) and its peak memory (MiB), first
+    run / cached run."""
+    lines = [
+        "| sequence | method | t_err (%) | r_err (deg/100 m) | frame ms, median / p95 "
+        "| vs small_gicp | registration ms | process s, first / cached | peak MiB |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def pair(values: dict | None, fmt: str) -> str:
+        return " / ".join(format(v, fmt) for v in values.values()) if values else "-"
+
+    for key, r in results.items():
+        name, method = key.split("/")
+        frame, peer = r.get("frame_ms"), results.get(f"{name}/small_gicp", {}).get("frame_ms")
+        ratio = f"{frame['median'] / peer['median']:.2f}x" if frame and peer else "-"
+        lines.append(
+            f"| {name} | {method} | {r['t_err_percent']:.3f} | {r['r_err_deg_per_100m']:.3f} | "
+            f"{pair(frame, '.1f')} | {ratio} | {r['median_ms_per_frame']:.1f} | "
+            f"{pair(r.get('process_s'), '.0f')} | {pair(r.get('peak_mib'), '.0f')} |"
+        )
+    return "\n".join(lines)
 
 
 def stage_table(results: dict) -> str:

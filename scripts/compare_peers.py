@@ -28,12 +28,11 @@ import json
 import logging
 import os
 import sys
-import time
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
-from bench_odometry import _CompileCounter, run_kiss, run_ours, run_small_gicp
+from bench_odometry import _CompileCounter, run_genz, run_kiss, run_ours, run_small_gicp
 from make_tables import commit, window_rte
 
 from gloam_jax import io
@@ -55,30 +54,6 @@ class RawScans:
 
     def point_times(self, i: int) -> None:
         return None
-
-
-def run_genz(seq: RawScans, n: int, threads: int, preset: str | None = None):
-    """GenZ-ICP: its default configuration with deskew on (azimuth times in [0, 1]), or one
-    of the presets it ships (``kitti``: deskew off, 0.6 m voxels, 5 m minimum range)."""
-    from genz_icp.config import GenZConfig, load_config
-    from genz_icp.genz_icp import GenZICP
-
-    if preset is None:
-        config = GenZConfig()
-        config.data.deskew = True
-    else:
-        config = load_config(Path(preset))
-    config.registration.max_num_threads = threads
-    odometry = GenZICP(config)
-    poses, ms = [], []
-    for i in range(n):
-        scan = seq.scan(i)[:, :3].astype(np.float64)
-        u = 0.5 * (1.0 - np.arctan2(scan[:, 1], scan[:, 0]) / np.pi)
-        t0 = time.perf_counter()
-        odometry.register_frame(scan, u if config.data.deskew else None)
-        ms.append(1e3 * (time.perf_counter() - t0))
-        poses.append(odometry.last_pose.copy())
-    return np.stack(poses), ms, {}
 
 
 def parse_variants(items: list[str]) -> dict[str, dict]:

@@ -58,3 +58,33 @@ def test_our_methods_get_a_per_stage_breakdown(bench_odometry, sim_sequence):
     assert cells[:2] == ["00", "gicp"] and len(cells) == len(STAGES) + 3
     assert cells[2] == f"{stages['load']['median']:.1f} / {stages['load']['p95']:.1f}"
     assert float(cells[-1]) == pytest.approx(sum(s["median"] for s in stages.values()), abs=0.06)
+
+
+def test_isolated_runs_report_process_time_and_memory(bench_odometry, sim_sequence, tmp_path):
+    """--isolate: each method in processes of its own, ours twice (empty, then filled
+    compilation cache), a peer once; the table gives frame times and both runs."""
+    import json
+    import subprocess
+    import sys
+
+    from repo_scripts import ROOT
+
+    out = tmp_path / "bench.json"
+    cmd = [sys.executable, str(ROOT / "scripts" / "bench_odometry.py"), str(sim_sequence),
+           "--sequences", "00", "--frames", "4", "--methods", "gicp,small_gicp",
+           "--isolate", "--out", str(out)]  # fmt: skip
+    printed = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
+    results = json.loads(out.read_text())
+    ours, peer = results["00/gicp"], results["00/small_gicp"]
+    assert list(ours["process_s"]) == list(ours["peak_mib"]) == ["first", "cached"]
+    assert list(peer["process_s"]) == ["first"]
+    for r in (ours, peer):
+        assert all(v > 0 for v in r["process_s"].values())
+        assert all(v > 50 for v in r["peak_mib"].values())  # a Python process with NumPy
+        assert 0 < r["frame_ms"]["median"] <= r["frame_ms"]["p95"]
+    assert ours["queries_per_frame"] >= 1 and ours["frames"] == 4
+    rows = [line for line in printed.splitlines() if line.startswith("| 00 |")]
+    cells = rows[0].strip("| ").split(" | ")
+    ratio = ours["frame_ms"]["median"] / peer["frame_ms"]["median"]
+    assert cells[1] == "gicp" and cells[5] == f"{ratio:.2f}x"
+    assert cells[7].count(" / ") == 1 and cells[8].count(" / ") == 1
