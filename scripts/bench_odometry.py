@@ -63,15 +63,20 @@ class _CompileCounter(logging.Handler):
 
 
 def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counter):
-    """This project's odometry with ``config`` (an OdometryConfig), frame by frame."""
+    """This project's odometry with ``config`` (an OdometryConfig), frame by frame, with the
+    model (or the guard's variant) that ``gloam run`` picks from the first scans."""
     import dataclasses
 
+    from gloam_jax.guard import choose
     from gloam_jax.odometry import Odometry
     from gloam_jax.pipeline import prefetched, timed_input
+    from gloam_jax.sensor import SENSOR_SCANS
 
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
-    odometry = Odometry(config)
+    first = [seq.scan(i) for i in range(min(n, SENSOR_SCANS))]
+    choice = choose(config, first, lambda model, k: model.backbone()(first[k]))
+    odometry = Odometry(choice.config, choice.model)
     backbone = None
     if odometry.needs_features:
         backbone = odometry.model.backbone()
@@ -109,6 +114,7 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         "wall_ms_per_frame": wall_ms,
         "frame_ms": frame_summary(frame_ms),
         "queries_per_frame": float(np.mean([s.queries for s in odometry.status[1:]])),
+        "model_choice": choice.record,
     }
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))
