@@ -154,22 +154,7 @@ def run_kiss(seq: io.KittiSequence, n: int, threads: int):
     config = load_config(None)
     config.data.deskew = True
     config.registration.max_num_threads = threads
-    odometry = KissICP(config)
-    poses, ms, frame_ms = [], [], []
-    for i in range(n):
-        start = time.perf_counter()
-        scan = seq.scan(i)[:, :3].astype(np.float64)
-        point_times = seq.point_times(i)
-        if point_times is None:
-            u = 0.5 * (1.0 - np.arctan2(scan[:, 1], scan[:, 0]) / np.pi)
-        else:
-            u = 0.5 + point_times.astype(np.float64) / 0.1
-        t0 = time.perf_counter()
-        odometry.register_frame(scan, u)
-        ms.append(1e3 * (time.perf_counter() - t0))
-        frame_ms.append(1e3 * (time.perf_counter() - start))
-        poses.append(odometry.last_pose.copy())
-    return np.stack(poses), ms, {"frame_ms": frame_summary(frame_ms)}
+    return _kiss_family(KissICP(config), seq, n, deskew=True, own_times=True)
 
 
 def run_genz(seq: io.KittiSequence, n: int, threads: int, preset: str | None = None):
@@ -184,14 +169,23 @@ def run_genz(seq: io.KittiSequence, n: int, threads: int, preset: str | None = N
     else:
         config = load_config(Path(preset))
     config.registration.max_num_threads = threads
-    odometry = GenZICP(config)
+    return _kiss_family(GenZICP(config), seq, n, deskew=config.data.deskew, own_times=False)
+
+
+def _kiss_family(odometry, seq: io.KittiSequence, n: int, deskew: bool, own_times: bool):
+    """The frame loop of KISS-ICP and GenZ-ICP (one API): each scan with its points' times in
+    [0, 1], the scan's own where ``own_times`` and it has them, else from the azimuth."""
     poses, ms, frame_ms = [], [], []
     for i in range(n):
         start = time.perf_counter()
         scan = seq.scan(i)[:, :3].astype(np.float64)
-        u = 0.5 * (1.0 - np.arctan2(scan[:, 1], scan[:, 0]) / np.pi)
+        point_times = seq.point_times(i) if own_times else None
+        if point_times is None:
+            u = 0.5 * (1.0 - np.arctan2(scan[:, 1], scan[:, 0]) / np.pi)
+        else:
+            u = 0.5 + point_times.astype(np.float64) / 0.1
         t0 = time.perf_counter()
-        odometry.register_frame(scan, u if config.data.deskew else None)
+        odometry.register_frame(scan, u if deskew else None)
         ms.append(1e3 * (time.perf_counter() - t0))
         frame_ms.append(1e3 * (time.perf_counter() - start))
         poses.append(odometry.last_pose.copy())
