@@ -230,8 +230,7 @@ def run_dataset(
                 record["skipped"].append(k)
                 odometry.register_frame(None, None, frame_dt, source=f"skipped: {err}")
             else:
-                for stage, stage_ms in ms.items():
-                    odometry.timer.add(stage, stage_ms)
+                odometry.timer.add(ms)
                 if "features" in ms:
                     feature_ms.append(ms["features"])
                 if k == 0 and backbone is not None:

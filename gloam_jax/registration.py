@@ -232,15 +232,17 @@ def align_prepared(
     size = src.points.shape[0]
     max_d2 = jnp.asarray(config.max_correspondence_distance**2, dtype=geo.real_dtype())
     converged, iterations, queries = False, 0, 0
-    T_query = None  # where the candidates were found
+    # Where the candidates were found, and how far a source point may have moved since: a
+    # round queries again from requery_shift on (always where it is 0).
+    T_query, shift = T, np.inf
     for iterations in range(1, config.max_iterations + 1):  # noqa: B007
         with timer("neighbours"):
-            if T_query is None or not _kept(T_query, T, source.radius, config.requery_shift):
+            if shift >= config.requery_shift:
                 moved = source.points @ T[:3, :3].T + T[:3, 3]
-                found = target.tree.query(
+                hits = target.tree.query(
                     moved, config.num_candidates, config.max_correspondence_distance
                 )
-                cand, valid = (jnp.asarray(pc.pad(x, size)[0]) for x in found)
+                cand, valid = (jnp.asarray(pc.pad(x, size)[0]) for x in hits)
                 T_query, queries = T, queries + 1
         with timer("solve"):  # dispatch, then the wait for the results np.asarray reads
             _, xi, system = solve_round(
@@ -269,8 +271,8 @@ def align_prepared(
             break
     with timer("neighbours"):
         # The last candidates' nearest (the query sorts them) serve while they are kept.
-        kept = _kept(T_query, T, source.radius, config.requery_shift)
-        nearest = (found[0][:, 0], found[1][:, 0]) if kept else None
+        kept = shift < config.requery_shift
+        nearest = (hits[0][:, 0], hits[1][:, 0]) if kept else None
         rows, weight = constraint_rows(
             target, source, T, config.max_correspondence_distance, nearest
         )
@@ -300,12 +302,6 @@ def _largest_shift(T_from: np.ndarray, T_to: np.ndarray, radius: float) -> float
     D = T_to @ np.linalg.inv(T_from)
     angle = np.arccos(np.clip((np.trace(D[:3, :3]) - 1) / 2, -1.0, 1.0))
     return float(np.linalg.norm(T_to[:3, 3] - T_from[:3, 3]) + angle * radius)
-
-
-def _kept(T_query: np.ndarray, T: np.ndarray, radius: float, requery_shift: float) -> bool:
-    """Whether candidates found at ``T_query`` still serve at ``T`` (no point moved as far as
-    ``requery_shift``; never where it is 0)."""
-    return _largest_shift(T_query, T, radius) < requery_shift
 
 
 def _gauss_newton_step(H: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -57,9 +57,11 @@ class StageTimer:
     def __call__(self, stage: str) -> _Span:
         return _Span(self, stage)
 
-    def add(self, stage: str, ms: float) -> None:
-        """Add ``ms`` measured elsewhere (another thread's work for this frame) to ``stage``."""
-        self.ms[stage] = self.ms.get(stage, 0.0) + ms
+    def add(self, ms: dict[str, float]) -> None:
+        """Add milliseconds per stage measured elsewhere (another thread's work for this
+        frame: :func:`gloam_jax.pipeline.timed_input`)."""
+        for stage, stage_ms in ms.items():
+            self.ms[stage] = self.ms.get(stage, 0.0) + stage_ms
 
     def take(self, total_ms: float | None = None) -> dict[str, float]:
         """Every stage's milliseconds so far (0 for those not met), to 0.01 ms, and back to
