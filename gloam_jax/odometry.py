@@ -30,7 +30,7 @@ from gloam_jax.gicp import GICPConfig, increment, retract_host
 from gloam_jax.learned import METHODS, without_gicp_constants
 from gloam_jax.models import GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
-from gloam_jax.preprocess import PreprocessConfig, preprocess_scan
+from gloam_jax.preprocess import PreprocessConfig, VoxelCentres, deskew_centres, voxel_centres
 from gloam_jax.registration import PreparedCloud, align_prepared, build_cloud
 from gloam_jax.timing import StageTimer
 
@@ -242,34 +242,29 @@ class Odometry:
         step = geo.se3_exp_jit(self._velocity(frame_dt))
         return self.poses[-1] @ np.asarray(step, dtype=np.float64)
 
-    def _preprocess(
+    def voxel_centres(
         self,
         scan: np.ndarray,
-        times: np.ndarray | None,
-        frame_dt: float,
-        status,
-        source: str | None,
-        features: np.ndarray | None,
-        velocity: np.ndarray | None,
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        if velocity is None and self.poses:
-            velocity = self._velocity(frame_dt)
-        points, pca, status.num_dropped = preprocess_scan(
-            scan,
-            times,
-            self.config.preprocess,
-            velocity=velocity,
-            frame_dt=frame_dt,
-            pca=self.model.pca if self.needs_features else None,
-            features=features,
-            buckets=self.buckets,
-            source=source,
-        )
-        return points, pca
+        times: np.ndarray | None = None,
+        source: str | None = None,
+        features: np.ndarray | None = None,
+    ) -> VoxelCentres:
+        """A frame's preprocessing up to the deskew (:func:`gloam_jax.preprocess.voxel_centres`
+        with this odometry's settings and PCA), which needs no pose: run it ahead of
+        :meth:`register_frame` (``gloam run`` does, on its prefetch thread) and pass the result
+        as the scan. Raises InputError for a scan it cannot prepare."""
+        self._check_features(features, source)
+        pca = self.model.pca if self.needs_features else None
+        return voxel_centres(scan, times, self.config.preprocess, pca=pca, features=features,
+                             source=source)  # fmt: skip
+
+    def _check_features(self, features: np.ndarray | None, source: str | None) -> None:
+        if self.needs_features and features is None:
+            raise InputError(source, f"method '{self.config.method}' needs per-point features")
 
     def register_frame(
         self,
-        scan: np.ndarray | None,
+        scan: np.ndarray | VoxelCentres | None,
         times: np.ndarray | None = None,
         frame_dt: float = 0.1,
         source: str | None = None,
@@ -277,10 +272,12 @@ class Odometry:
     ) -> np.ndarray:
         """Estimate the pose of ``scan`` (N, 3+), with optional per-point times (N,) in seconds
         from its reference time; ``frame_dt`` is the time since the previous frame;
-        ``features`` (N, D): the backbone's, for the learned methods.
+        ``features`` (N, D): the backbone's, for the learned methods. ``scan`` may also be
+        its :meth:`voxel_centres`, prepared ahead (``times`` and ``features`` then unused).
         Returns ``T_world_lidar`` (4, 4). Bad scans fall back on the motion prior; so does
         ``scan`` None, a scan that could not be read (``source`` then says why)."""
         start = time.perf_counter()
+        self.timer.begin()
         if not is_positive(frame_dt):
             self.timer.take()
             raise InputError(source, f"frame_dt must be a positive time step (s), not {frame_dt!r}")
@@ -389,13 +386,19 @@ class Odometry:
         if scan is None:
             status.error = source
             return self._accept(T_pred, None, status, frame_dt)
-        if self.needs_features and features is None:
-            raise InputError(source, f"method '{cfg.method}' needs per-point features")
+        if not isinstance(scan, VoxelCentres):
+            self._check_features(features, source)
         try:
-            with timer("preprocess"):
-                points, pca = self._preprocess(
-                    scan, times, frame_dt, status, source, features, velocity
-                )
+            if isinstance(scan, VoxelCentres):
+                centres = scan
+            else:
+                with timer("voxels"):
+                    centres = self.voxel_centres(scan, times, source, features)
+            if velocity is None and self.poses:
+                velocity = self._velocity(frame_dt)
+            with timer("deskew"):
+                points = deskew_centres(centres, velocity, frame_dt, self.buckets)
+            status.num_dropped, pca = centres.dropped, centres.features
             scan_size = self.buckets("scan", len(points))
             prep = cfg.preprocess
             cloud = build_cloud(points, prep.num_neighbors, prep.regularizer, source, scan_size,

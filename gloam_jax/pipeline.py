@@ -40,7 +40,7 @@ import signal
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import closing
+from contextlib import closing, suppress
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -56,12 +56,20 @@ from gloam_jax.guard import Choice, choose
 from gloam_jax.interrupt import interrupt_for, stop_between
 from gloam_jax.models import GLOAMModel
 from gloam_jax.odometry import FrameStatus, Odometry, OdometryConfig
-from gloam_jax.preprocess import ONE_INSTANT, check_units, detect_time_convention, resolve_deskew
+from gloam_jax.preprocess import (
+    ONE_INSTANT,
+    VoxelCentres,
+    check_units,
+    detect_time_convention,
+    resolve_deskew,
+)
 from gloam_jax.sensor import SENSOR_SCANS
 
 Item = TypeVar("Item")
 # a frame's scan (N, 4), point times (N,) or None, features (N, D) or None, ms per stage
-FrameInput = tuple[np.ndarray, np.ndarray | None, np.ndarray | None, dict[str, float]]
+FrameInput = tuple[
+    np.ndarray, np.ndarray | None, np.ndarray | None, VoxelCentres | None, dict[str, float]
+]
 FLUSH_EVERY = 100  # frames between two writes of the poses and the checkpoint
 CHECKPOINT = "checkpoint.npz"
 CHECKPOINT_VERSION = 1
@@ -142,9 +150,10 @@ def run_dataset(
     by the data (:func:`plan_deskew`), the model (or the guard's plain GICP) by the first
     scans' sensor (:func:`choose_model`). Learned methods get per-point features from the
     model's backbone, or from one file per scan in ``features_dir`` (the ``precomputed``
-    backbone). ``progress(k, ms)`` after the k-th frame. The next scan is read and
-    its features computed on a worker thread while a frame registers. The time per frame
-    counts registration only; feature extraction is timed separately (``median_ms_features``),
+    backbone). ``progress(k, ms)`` after the k-th frame. The next scan is read, its features
+    computed and its voxel grid built (:meth:`Odometry.voxel_centres`, all that needs no
+    pose) on a worker thread while a frame registers. The time per frame counts registration
+    only; feature extraction is timed separately (``median_ms_features``),
     the loop's wall time per frame, everything overlapped, is ``wall_ms_per_frame``, and each
     frame's time by stage (loading included) is in its ``stage_ms``.
 
@@ -202,9 +211,9 @@ def run_dataset(
             scan, point_times = dataset.frame(i)
             if k:  # frame 0 was checked before the run
                 check_units(scan, config.preprocess, path)
-            return scan, point_times
+            return scan, point_times if deskew["used"] == "timestamps" else None
 
-        return timed_input(read, backbone, path, i)
+        return timed_input(read, backbone, path, i, odometry)
 
     start = len(odometry.poses)
     loop_start = time.perf_counter()
@@ -219,7 +228,7 @@ def run_dataset(
                 float(times[i] - times[frames[k - 1]]) if k else config.preprocess.sweep_duration
             )
             try:  # the scan, and its features where the method needs them
-                scan, point_times, features, ms = current.result()
+                scan, point_times, features, centres, ms = current.result()
             except InputError as err:
                 if on_bad_scan == "stop":
                     save({"status": "stopped", "error": str(err)})
@@ -236,11 +245,12 @@ def run_dataset(
                 if k == 0 and backbone is not None:
                     warning = intensity_warning(backbone, odometry.model.pca, scan)
                     record["warnings"] += [] if warning is None else [warning]
-                if deskew["used"] != "timestamps":
-                    point_times = None
                 t0 = time.perf_counter()
-                odometry.register_frame(scan, point_times, frame_dt, source=str(path),
-                                        features=features)  # fmt: skip
+                if centres is not None:  # prepared ahead, on the prefetch thread
+                    odometry.register_frame(centres, frame_dt=frame_dt, source=str(path))
+                else:
+                    odometry.register_frame(scan, point_times, frame_dt, source=str(path),
+                                            features=features)  # fmt: skip
                 frame_ms.append(1e3 * (time.perf_counter() - t0))
             if progress is not None:
                 progress(k, frame_ms[-1] if frame_ms else 0.0)
@@ -264,18 +274,26 @@ def timed_input(
     backbone: Backbone | None,
     path: str | os.PathLike[str],
     frame: int,
+    odometry: Odometry | None = None,
 ) -> FrameInput:
     """A frame's scan and point times from ``read()``, its features where ``backbone`` is
-    given (None otherwise), and the milliseconds each took (stages ``load``, ``features``)."""
+    given (None otherwise), its :meth:`Odometry.voxel_centres` where ``odometry`` is given
+    (None otherwise, or where the scan cannot be prepared: registering the raw scan then
+    reports why), and the milliseconds each took (stages ``load``, ``features``, ``voxels``)."""
     t0 = time.perf_counter()
     scan, point_times = read()
     ms = {"load": 1e3 * (time.perf_counter() - t0)}
-    features = None
+    features = centres = None
     if backbone is not None:
         t0 = time.perf_counter()
         features = backbone(scan, path=path, frame=frame)
         ms["features"] = 1e3 * (time.perf_counter() - t0)
-    return scan, point_times, features, ms
+    if odometry is not None:
+        t0 = time.perf_counter()
+        with suppress(InputError):
+            centres = odometry.voxel_centres(scan, point_times, str(path), features)
+        ms["voxels"] = 1e3 * (time.perf_counter() - t0)
+    return scan, point_times, features, centres, ms
 
 
 def prefetched(fetch: Callable[[int], Item], ks: range) -> Iterator[Future[Item]]:

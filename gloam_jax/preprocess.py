@@ -264,29 +264,35 @@ def centre_rows(
     return rows
 
 
-def preprocess_scan(
+@dataclass(frozen=True)
+class VoxelCentres:
+    """A scan prepared up to its deskew: the part of :func:`preprocess_scan` that does not
+    depend on the motion, so it can run ahead of the registration (on the prefetch thread).
+
+    ``points`` (M, 3) float64 voxel centres as measured; ``times`` (M,) their mean per-point
+    time, s from the scan's reference time (zeros when the policy is off); ``features``
+    (M, 6) their mean PCA features or None; ``dropped``: NaN / inf points removed;
+    ``deskew``: whether the policy moves them (not ``off``).
+    """
+
+    points: np.ndarray
+    times: np.ndarray
+    features: np.ndarray | None
+    dropped: int
+    deskew: bool
+
+
+def voxel_centres(
     scan: np.ndarray,
     times: np.ndarray | None,
     config: PreprocessConfig,
     *,
-    velocity: np.ndarray | None = None,
-    frame_dt: float = 0.1,
     pca: FeaturePCA | None = None,
     features: np.ndarray | None = None,
-    buckets: pc.StickyBuckets | None = None,
     source: str | None = None,
-) -> tuple[np.ndarray, np.ndarray | None, int]:
-    """One raw scan (N, 3+) -> its voxel centres (M, 3) float64, deskewed with ``velocity``
-    (se(3) per ``frame_dt``; None: not deskewed), their PCA features (M, 6) when ``pca`` is
-    given (from the backbone's ``features`` (N, D)), and the number of NaN / inf points
-    dropped.
-
-    ``times`` (N,) per-point times in any convention (normalised by :func:`normalise_times`),
-    or None; ``config.deskew`` says whether they, the azimuth or nothing deskews (``auto``:
-    the times when given, else the azimuth; see :func:`resolve_deskew`). ``buckets``
-    size the deskew's padding (role "scan", grown to hold all M centres). Raises InputError
-    for scans without points in range and for features of the wrong shape.
-    """
+) -> VoxelCentres:
+    """One raw scan (N, 3+) -> its voxel centres before the deskew (:func:`preprocess_scan`
+    has the arguments)."""
     keep, dropped = pc.range_mask(scan, config.min_range, config.max_range, source)
     points = scan[keep, :3].astype(np.float64)
     if len(points) == 0:
@@ -320,9 +326,53 @@ def preprocess_scan(
     # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
     # few voxel centres with their mean time; features are averaged per voxel alike.
     columns = pc.voxel_means(points, config.downsampling_resolution, columns)
-    reduced, pca_features = columns[0], (columns[1] if pca is not None else None)
-    points = reduced[:, :3]
-    if policy != "off" and velocity is not None:
-        size = None if buckets is None else buckets("scan", len(points))
-        points = deskew(points, reduced[:, 3], velocity, frame_dt, size)
-    return points, pca_features, dropped
+    reduced = columns[0]
+    return VoxelCentres(
+        points=reduced[:, :3],
+        times=reduced[:, 3],
+        features=columns[1] if pca is not None else None,
+        dropped=dropped,
+        deskew=policy != "off",
+    )
+
+
+def deskew_centres(
+    centres: VoxelCentres,
+    velocity: np.ndarray | None,
+    frame_dt: float = 0.1,
+    buckets: pc.StickyBuckets | None = None,
+) -> np.ndarray:
+    """The centres (M, 3) moved to the scan's reference time with ``velocity`` (se(3) per
+    ``frame_dt``; None: as measured); ``buckets`` size the padding (role "scan")."""
+    if not centres.deskew or velocity is None:
+        return centres.points
+    size = None if buckets is None else buckets("scan", len(centres.points))
+    return deskew(centres.points, centres.times, velocity, frame_dt, size)
+
+
+def preprocess_scan(
+    scan: np.ndarray,
+    times: np.ndarray | None,
+    config: PreprocessConfig,
+    *,
+    velocity: np.ndarray | None = None,
+    frame_dt: float = 0.1,
+    pca: FeaturePCA | None = None,
+    features: np.ndarray | None = None,
+    buckets: pc.StickyBuckets | None = None,
+    source: str | None = None,
+) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """One raw scan (N, 3+) -> its voxel centres (M, 3) float64, deskewed with ``velocity``
+    (se(3) per ``frame_dt``; None: not deskewed), their PCA features (M, 6) when ``pca`` is
+    given (from the backbone's ``features`` (N, D)), and the number of NaN / inf points
+    dropped: :func:`voxel_centres`, then :func:`deskew_centres`.
+
+    ``times`` (N,) per-point times in any convention (normalised by :func:`normalise_times`),
+    or None; ``config.deskew`` says whether they, the azimuth or nothing deskews (``auto``:
+    the times when given, else the azimuth; see :func:`resolve_deskew`). ``buckets``
+    size the deskew's padding (role "scan", grown to hold all M centres). Raises InputError
+    for scans without points in range and for features of the wrong shape.
+    """
+    centres = voxel_centres(scan, times, config, pca=pca, features=features, source=source)
+    points = deskew_centres(centres, velocity, frame_dt, buckets)
+    return points, centres.features, centres.dropped

@@ -7,7 +7,9 @@ stages, in the order a frame meets them:
 * ``load``: reading the scan file and checking it (:mod:`gloam_jax.pipeline`'s prefetch
   thread, while the frame before registers);
 * ``features``: the backbone's per-point features, for the learned methods (the same thread);
-* ``preprocess``: cleaning, cropping, voxel grid, deskew;
+* ``voxels``: cleaning, cropping, per-point times and the voxel grid (the same thread when the
+  caller prepares the frame ahead, as ``gloam run`` does; else the registration's);
+* ``deskew``: the voxel centres moved to the scan's reference time with the current velocity;
 * ``neighbours``: the host's k-d trees: the scan's tree and k-NN for its covariances, each
   round's candidate query, the degeneracy check's nearest neighbours;
 * ``covariances``: the jitted k-NN covariances and learned attributes, their transfers;
@@ -29,7 +31,7 @@ from collections.abc import Iterable
 import numpy as np
 
 STAGES: tuple[str, ...] = (
-    "load", "features", "preprocess", "neighbours", "covariances", "solve", "map", "other",
+    "load", "features", "voxels", "deskew", "neighbours", "covariances", "solve", "map", "other",
 )  # fmt: skip
 
 
@@ -52,7 +54,8 @@ class StageTimer:
     block's wall time to its stage."""
 
     def __init__(self) -> None:
-        self.ms: dict[str, float] = {}
+        self.ms: dict[str, float] = {}  # timed here (inside the registration, after begin)
+        self.elsewhere: dict[str, float] = {}  # before it, or on another thread
 
     def __call__(self, stage: str) -> _Span:
         return _Span(self, stage)
@@ -61,16 +64,23 @@ class StageTimer:
         """Add milliseconds per stage measured elsewhere (another thread's work for this
         frame: :func:`gloam_jax.pipeline.timed_input`)."""
         for stage, stage_ms in ms.items():
-            self.ms[stage] = self.ms.get(stage, 0.0) + stage_ms
+            self.elsewhere[stage] = self.elsewhere.get(stage, 0.0) + stage_ms
+
+    def begin(self) -> None:
+        """The registration starts: what was timed so far (the caller's loading) lies
+        outside it, as another thread's work does."""
+        self.add(self.ms)
+        self.ms = {}
 
     def take(self, total_ms: float | None = None) -> dict[str, float]:
         """Every stage's milliseconds so far (0 for those not met), to 0.01 ms, and back to
-        zero; ``total_ms``: the registration's wall time, whose part outside the registration
-        stages is ``other``."""
-        ms, self.ms = self.ms, {}
+        zero; ``total_ms``: the registration's wall time (since :meth:`begin`), whose part
+        outside the stages timed within it is ``other``."""
+        ms, elsewhere, self.ms, self.elsewhere = self.ms, self.elsewhere, {}, {}
         if total_ms is not None:
-            inside = sum(v for k, v in ms.items() if k not in ("load", "features", "other"))
-            ms["other"] = ms.get("other", 0.0) + max(total_ms - inside, 0.0)
+            ms["other"] = max(total_ms - sum(ms.values()), 0.0)
+        for stage, stage_ms in elsewhere.items():
+            ms[stage] = ms.get(stage, 0.0) + stage_ms
         return {stage: round(ms.get(stage, 0.0), 2) for stage in STAGES}
 
 

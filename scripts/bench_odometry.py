@@ -25,12 +25,12 @@ that run filled (the peers compile nothing: one run).
 
 Prints t_err (%), r_err (deg/100 m) with the KITTI devkit metric in the camera-0 frame, and the
 median milliseconds per frame of registration; for this project's methods also the wall time
-per frame of the whole loop (reading, features and registration, the next scan read and its
-features computed while a frame registers, as in ``gloam run``); counts JAX compilations after
-the first 20 frames. For this
-project's methods, a second table breaks a frame down by stage (``gloam_jax.timing``: load,
-features, preprocess, neighbours, covariances, solve, map, other), each stage's median and 95th
-percentile in ms over the frames after the first two (``stage_ms`` in the ``--out`` file).
+per frame of the whole loop (reading, features and registration, the next scan read, its
+features and voxel grid computed while a frame registers, as in ``gloam run``); counts JAX
+compilations after the first 20 frames. For this project's methods, a second table breaks a
+frame down by stage (``gloam_jax.timing``: load, features, voxels, deskew, neighbours,
+covariances, solve, map, other), each stage's median and 95th percentile in ms over the
+frames after the first two (``stage_ms`` in the ``--out`` file).
 """
 
 from __future__ import annotations
@@ -83,13 +83,17 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
     times, ms, feature_ms, late_compiles = seq.times, [], [], 0
 
     def fetch(i: int):
-        return timed_input(lambda: (seq.scan(i), seq.point_times(i)), backbone, seq.scan_path(i), i)
+        def read():
+            return seq.scan(i), seq.point_times(i)
 
-    # as gloam run does: the next scan and its features on a worker thread (pipeline.prefetched)
+        return timed_input(read, backbone, seq.scan_path(i), i, odometry)
+
+    # as gloam run does: the next scan, its features and its voxel centres on a worker thread
+    # (pipeline.prefetched)
     last = time.perf_counter()
     frame_ms = []
     for i, fetched in enumerate(prefetched(fetch, range(n))):
-        scan, point_times, features, stage_ms = fetched.result()
+        scan, point_times, features, centres, stage_ms = fetched.result()
         odometry.timer.add(stage_ms)
         if "features" in stage_ms:
             feature_ms.append(stage_ms["features"])
@@ -97,7 +101,10 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         if i == 20:
             late_compiles = counter.count
         t0 = time.perf_counter()
-        odometry.register_frame(scan, point_times, dt, features=features)
+        if centres is not None:
+            odometry.register_frame(centres, frame_dt=dt)
+        else:
+            odometry.register_frame(scan, point_times, dt, features=features)
         ms.append(1e3 * (time.perf_counter() - t0))
         frame_ms.append(1e3 * (time.perf_counter() - last))
         last = time.perf_counter()

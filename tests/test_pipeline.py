@@ -247,7 +247,8 @@ def test_a_two_million_point_scan_runs_within_4_gb(tmp_path):
 
 
 def test_a_run_records_each_frames_stages_and_their_median_and_p95(sim_sequence, tmp_path):
-    """frames.json: each frame's stage_ms, loading included; metrics.json: each stage's median
+    """frames.json: each frame's stage_ms, loading and the voxel grid (both on the prefetch
+    thread) included; metrics.json: each stage's median
     and p95 over the frames after the first two. Older frames.json entries without times
     still load."""
     result = run_dataset(open_dataset(sim_sequence, "00"), OdometryConfig(), tmp_path,
@@ -255,10 +256,10 @@ def test_a_run_records_each_frames_stages_and_their_median_and_p95(sim_sequence,
     flags = json.loads((tmp_path / "frames.json").read_text())
     stage_ms = [f["stage_ms"] for f in flags]
     assert len(stage_ms) == 6 and all(tuple(ms) == STAGES for ms in stage_ms)
-    assert all(ms["load"] > 0 and min(ms.values()) >= 0 for ms in stage_ms)
+    assert all(ms["load"] > 0 and ms["voxels"] > 0 and min(ms.values()) >= 0 for ms in stage_ms)
     assert all(ms["solve"] > 0 and ms["neighbours"] > 0 for ms in stage_ms[1:])
     # the stages inside registration add up to its time (frames 0, 1 redone within frame 1's)
-    registration = [sum(v for k, v in ms.items() if k not in ("load", "features"))
+    registration = [sum(v for k, v in ms.items() if k not in ("load", "features", "voxels"))
                     for ms in stage_ms]  # fmt: skip
     assert result["first_frames_ms"] == pytest.approx(registration[:3], abs=0.5)
     metrics = json.loads((tmp_path / "metrics.json").read_text())

@@ -13,6 +13,7 @@ def test_a_timer_adds_up_each_stage_and_starts_the_next_frame_from_zero():
     timer = StageTimer()
     with timer("load"):
         time.sleep(0.01)
+    timer.begin()  # the registration starts: loading lies outside it
     for _ in range(2):  # a stage met twice (two rounds) counts both
         with timer("solve"):
             time.sleep(0.01)
@@ -22,10 +23,22 @@ def test_a_timer_adds_up_each_stage_and_starts_the_next_frame_from_zero():
     ms = timer.take(total_ms=100.0)
     assert tuple(ms) == STAGES
     assert 10 <= ms["load"] < 60 and 20 <= ms["solve"] < 100 and 10 <= ms["map"] < 60
-    assert ms["preprocess"] == ms["features"] == 0
+    assert ms["voxels"] == ms["features"] == 0
     # other: the registration's time (100 ms) outside its stages (solve, map), load apart
     assert ms["other"] == pytest.approx(100.0 - ms["solve"] - ms["map"], abs=0.02)
     assert set(timer.take().values()) == {0.0}  # the next frame starts from zero
+
+
+def test_another_threads_stages_count_apart_from_the_registrations_other():
+    timer = StageTimer()
+    timer.add({"load": 5.0, "voxels": 20.0})  # the prefetch thread's, for this frame
+    timer.begin()
+    with timer("solve"):
+        time.sleep(0.01)
+    timer.add({"voxels": 1.0})
+    ms = timer.take(total_ms=50.0)
+    assert ms["load"] == 5.0 and ms["voxels"] == 21.0
+    assert ms["other"] == pytest.approx(50.0 - ms["solve"], abs=0.02)
 
 
 def test_other_is_never_negative():
