@@ -67,15 +67,13 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
     model (or the guard's variant) that ``gloam run`` picks from the first scans."""
     import dataclasses
 
-    from gloam_jax.guard import choose
+    from gloam_jax.datasets import open_dataset
     from gloam_jax.odometry import Odometry
-    from gloam_jax.pipeline import prefetched, timed_input
-    from gloam_jax.sensor import SENSOR_SCANS
+    from gloam_jax.pipeline import choose_model, prefetched, timed_input
 
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
-    first = [seq.scan(i) for i in range(min(n, SENSOR_SCANS))]
-    choice = choose(config, first, lambda model, k: model.backbone()(first[k]))
+    choice = choose_model(open_dataset(seq.root, seq.sequence), config, range(n), None)
     odometry = Odometry(choice.config, choice.model)
     backbone = None
     if odometry.needs_features:
