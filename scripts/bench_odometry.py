@@ -69,7 +69,7 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
 
     from gloam_jax.datasets import open_dataset
     from gloam_jax.odometry import Odometry
-    from gloam_jax.pipeline import choose_model, prefetched, timed_input
+    from gloam_jax.pipeline import VoxelPlacement, choose_model, prefetched, timed_input
 
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
@@ -84,10 +84,14 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         def read():
             return seq.scan(i), seq.point_times(i)
 
-        return timed_input(read, backbone, seq.scan_path(i), i, odometry)
+        return timed_input(
+            read, backbone, seq.scan_path(i), i, odometry if placement.ahead else None
+        )
 
-    # as gloam run does: the next scan, its features and its voxel centres on a worker thread
-    # (pipeline.prefetched)
+    placement = VoxelPlacement()
+
+    # as gloam run does: the next scan, its features and, while that thread is the less busy,
+    # its voxel centres on a worker thread (pipeline.prefetched, pipeline.VoxelPlacement)
     last = time.perf_counter()
     frame_ms = []
     for i, fetched in enumerate(prefetched(fetch, range(n))):
@@ -104,6 +108,7 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         else:
             odometry.register_frame(scan, point_times, dt, features=features)
         ms.append(1e3 * (time.perf_counter() - t0))
+        placement.update(odometry.status[-1].stage_ms)
         frame_ms.append(1e3 * (time.perf_counter() - last))
         last = time.perf_counter()
     extra = {

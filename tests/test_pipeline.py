@@ -18,7 +18,7 @@ from gloam_jax.cli import app
 from gloam_jax.datasets import open_dataset
 from gloam_jax.errors import InputError
 from gloam_jax.odometry import FrameStatus, OdometryConfig
-from gloam_jax.pipeline import run_dataset, select_frames, unfinished_runs
+from gloam_jax.pipeline import VoxelPlacement, run_dataset, select_frames, unfinished_runs
 from gloam_jax.timing import STAGES
 
 runner = CliRunner()
@@ -244,6 +244,19 @@ def test_a_two_million_point_scan_runs_within_4_gb(tmp_path):
     assert peak_kib * 1024 < 4 * 2**30, f"peak RSS {peak_kib / 2**20:.2f} GiB"
     metrics = json.loads((tmp_path / "out" / "latest" / "metrics.json").read_text())
     assert metrics["num_frames"] == 3 and not metrics["bad_input_frames"]
+
+
+def test_the_voxel_grid_goes_to_the_thread_with_less_to_do():
+    placement = VoxelPlacement()
+    assert placement.ahead  # the first frame's grid: the prefetch thread has read nothing yet
+    gicp = dict.fromkeys(STAGES, 0.0) | {"load": 3.0, "voxels": 28.0, "neighbours": 35.0}
+    placement.update(gicp)
+    assert placement.ahead
+    # a backbone longer than the registration without the grid: the grid joins the registration
+    placement.update(gicp | {"features": 136.0, "neighbours": 65.0, "solve": 19.0})
+    assert not placement.ahead
+    placement.update(gicp | {"features": 20.0})
+    assert placement.ahead
 
 
 def test_a_run_records_each_frames_stages_and_their_median_and_p95(sim_sequence, tmp_path):
