@@ -386,10 +386,11 @@ class Odometry:
         if scan is None:
             status.error = source
             return self._accept(T_pred, None, status, frame_dt)
-        if not isinstance(scan, VoxelCentres):
+        prepared = isinstance(scan, VoxelCentres)
+        if not prepared:  # raised to the caller, not filed as a bad scan
             self._check_features(features, source)
         try:
-            if isinstance(scan, VoxelCentres):
+            if prepared:
                 centres = scan
             else:
                 with timer("voxels"):

@@ -247,11 +247,9 @@ def run_dataset(
                     warning = intensity_warning(backbone, odometry.model.pca, scan)
                     record["warnings"] += [] if warning is None else [warning]
                 t0 = time.perf_counter()
-                if centres is not None:  # prepared ahead, on the prefetch thread
-                    odometry.register_frame(centres, frame_dt=frame_dt, source=str(path))
-                else:
-                    odometry.register_frame(scan, point_times, frame_dt, source=str(path),
-                                            features=features)  # fmt: skip
+                prepared = scan if centres is None else centres  # centres: built ahead
+                odometry.register_frame(prepared, point_times, frame_dt, source=str(path),
+                                        features=features)  # fmt: skip
                 frame_ms.append(1e3 * (time.perf_counter() - t0))
                 placement.update(odometry.status[-1].stage_ms)
             if progress is not None:
