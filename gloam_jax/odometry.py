@@ -51,6 +51,9 @@ class OdometryConfig:
     keyframe_distance: float = 2.0  # m between keyframes
     keyframe_angle_deg: float = 15.0
     max_keyframes: int = 10  # local map size
+    # m; per voxel of this size the local map keeps only the newest keyframe's points (0:
+    # every keyframe's points; see LocalMap)
+    map_resolution: float = 0.0
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     gicp: GICPConfig = field(default_factory=GICPConfig)
 
@@ -71,6 +74,8 @@ class OdometryConfig:
             check_setting(is_positive(v := getattr(self, name)), name, "positive", v)
         check_setting(is_int(self.max_keyframes, 1), "max_keyframes", "an integer >= 1",
                       self.max_keyframes)  # fmt: skip
+        r = self.map_resolution
+        check_setting(r == 0 or is_positive(r), "map_resolution", "0 or positive (m)", r)
 
 
 @dataclass
@@ -108,17 +113,27 @@ class LocalMap:
     Merging (concatenation, k-d tree, padded device arrays) runs on a worker thread: the next
     frame's preprocessing is mostly single-threaded NumPy, so the tree build overlaps it on
     another core instead of adding to the frame's time (scipy builds trees without the GIL).
+
+    With a ``resolution`` (m), the map keeps one keyframe's points per voxel of that size, the
+    newest keyframe's that has any there: the union of overlapping keyframes holds each
+    surface once instead of once per keyframe, so the merge is incremental (drop the rows a
+    new keyframe covers or that left the window) and the tree several times smaller. Its rows
+    stay in keyframe order, so a map rebuilt from the same keyframes (a resume) is the same.
     """
 
-    def __init__(self, max_keyframes: int, buckets: pc.StickyBuckets) -> None:
+    def __init__(self, max_keyframes: int, buckets: pc.StickyBuckets, resolution: float = 0.0):
         self.max_keyframes = max_keyframes
         self.buckets = buckets
+        self.resolution = resolution
         # each keyframe's PreparedCloud columns (points, covs, features, normals, planarity),
         # in the world frame; features None for methods without learned association
         self.keyframes: list[dict[str, np.ndarray | None]] = []
         self.last_pose: np.ndarray | None = None
         self._merged: PreparedCloud | None = None
+        # the merge in progress: a PreparedCloud, or with a resolution (rows, PreparedCloud),
+        # rows being the map's columns with each row's voxel key and keyframe number
         self._pending: Future | None = None
+        self._added = 0  # keyframes added since the map was (re)started: the next one's number
         # One worker: merges run in the order of their keyframes.
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="local-map")
 
@@ -131,36 +146,63 @@ class LocalMap:
             "normals": cloud.normals @ R.T,
             "planarity": cloud.planarity,
         }
-        self.restore([*self.keyframes, keyframe], T_world_lidar)
+        if not self.resolution:
+            self.restore([*self.keyframes, keyframe], T_world_lidar)
+            return
+        self.keyframes = [*self.keyframes, keyframe][-self.max_keyframes :]
+        self._pending = self._worker.submit(
+            _voxel_merge, self._pending, keyframe, self._added, self.max_keyframes,
+            self.resolution,
+        )  # fmt: skip
+        self._added += 1
+        self.last_pose = T_world_lidar
 
     def restore(self, keyframes: list[dict], last_pose: np.ndarray) -> None:
         """The map of ``keyframes`` (world-frame columns, oldest first; the last ``max_keyframes``
         kept), the newest taken at ``last_pose`` (4, 4)."""
         self.keyframes = keyframes[-self.max_keyframes :]
+        self.last_pose = last_pose
+        if self.resolution:
+            self._pending = None
+            for number, keyframe in enumerate(self.keyframes):
+                self._pending = self._worker.submit(
+                    _voxel_merge, self._pending, keyframe, number, self.max_keyframes,
+                    self.resolution,
+                )  # fmt: skip
+            self._added = len(self.keyframes)
+            return
         # The scans' size holds every keyframe (they were scans); grown here for keyframes from
         # elsewhere. Sized on this thread, not the worker's: StickyBuckets is not thread-safe.
         self.buckets("scan", max(len(k["points"]) for k in self.keyframes))
         self._pending = self._worker.submit(_merge, list(self.keyframes), self.size)
-        self.last_pose = last_pose
 
     @property
     def size(self) -> int:
-        """Rows of the padded map (0 before the first keyframe): its capacity at the scans'
-        current padded size. It follows that size as it grows, so each scan bucket pairs with
-        one map shape: the solver compiles once per bucket, and a restored map is padded as
-        the run that saved it had it (bit-exact resumes)."""
-        return self.max_keyframes * self.buckets.floor("scan") if self.keyframes else 0
+        """Rows of the padded map (0 before the first keyframe). Without a resolution: its
+        capacity at the scans' current padded size, which it follows as it grows, so each scan
+        bucket pairs with one map shape; with one: the "map" bucket of the merged rows. Either
+        way the solver compiles once per bucket, and a restored map is padded as the run that
+        saved it had it (bit-exact resumes)."""
+        if not self.keyframes:
+            return 0
+        if self.resolution:
+            return self.buckets("map", len(self.cloud.points))
+        return self.max_keyframes * self.buckets.floor("scan")
 
     def clear(self) -> None:
         """No keyframes (a merge still running is left to finish unread)."""
         self.keyframes, self.last_pose = [], None
         self._merged = self._pending = None
+        self._added = 0
 
     @property
     def cloud(self) -> PreparedCloud | None:
         """The merged map (waits for its merge), or None before the first keyframe."""
         if self._pending is not None:
-            self._merged, self._pending = self._pending.result(), None
+            merged = self._pending.result()
+            self._merged = merged[1] if self.resolution else merged
+            if not self.resolution:
+                self._pending = None
         return self._merged
 
 
@@ -174,6 +216,24 @@ def _merge(keyframes: list[dict], size: int) -> PreparedCloud:
     cloud = PreparedCloud(tree=KdTree(merged["points"], "local map"), **merged)
     cloud.padded(size)
     return cloud
+
+
+def _voxel_merge(
+    previous: Future | None, keyframe: dict, number: int, max_keyframes: int, resolution: float
+) -> tuple[dict, PreparedCloud]:
+    """The voxel map's rows after keyframe ``number`` (see :class:`LocalMap`): the ``previous``
+    merge's rows (None: none) still in the window and in no voxel the keyframe has points in,
+    then the keyframe's; and their prepared cloud."""
+    keys = pc.voxel_keys(keyframe["points"], resolution)
+    new = {**keyframe, "key": keys, "keyframe": np.full(len(keys), number)}
+    if previous is None:
+        rows = new
+    else:
+        old = previous.result()[0]
+        keep = (old["keyframe"] > number - max_keyframes) & ~np.isin(old["key"], keys)
+        rows = {k: None if v is None else np.concatenate([old[k][keep], v]) for k, v in new.items()}
+    columns = {k: v for k, v in rows.items() if k not in ("key", "keyframe")}
+    return rows, PreparedCloud(tree=KdTree(rows["points"], "local map"), **columns)
 
 
 def _needs_keyframe(last: np.ndarray | None, T: np.ndarray, config: OdometryConfig) -> bool:
@@ -228,7 +288,7 @@ class Odometry:
         self.velocity_dt = 1.0  # s, that interval
         self.previous: PreparedCloud | None = None
         self.buckets = pc.StickyBuckets()
-        self.map = LocalMap(config.max_keyframes, self.buckets)
+        self.map = LocalMap(config.max_keyframes, self.buckets, config.map_resolution)
         # The first two frames' inputs, kept until the first velocity redoes them (_redo_start).
         self._start: list[tuple] = []
 

@@ -127,6 +127,24 @@ def voxel_means(
     return out
 
 
+# Bits per axis of a voxel key (voxel_keys): cells within 2**20 of the origin each way.
+KEY_BITS = 21
+
+
+def voxel_keys(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """Each point's voxel of ``voxel_size`` metres as one int64 (N,), on a grid fixed to the
+    points' frame, so that keys compare across clouds in that frame (unlike voxel_index's)."""
+    cells = np.floor(points[:, :3] * (1.0 / voxel_size)).astype(np.int64)
+    half = 1 << (KEY_BITS - 1)
+    if len(cells) and np.abs(cells).max() >= half:
+        raise ValueError(
+            f"points lie more than {half * voxel_size / 1e3:.0f} km from the origin: beyond "
+            f"what {voxel_size} m voxel keys cover"
+        )
+    cells += half
+    return (cells[:, 0] << (2 * KEY_BITS)) | (cells[:, 1] << KEY_BITS) | cells[:, 2]
+
+
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     """Mean of the rows (all columns) falling in each voxel of ``voxel_size`` metres: (N, D).
 

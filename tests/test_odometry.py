@@ -11,11 +11,13 @@ import yaml
 from typer.testing import CliRunner
 
 from gloam_jax import io
+from gloam_jax import pointcloud as pc
 from gloam_jax.cli import app
 from gloam_jax.config import dump_config, load_config
 from gloam_jax.errors import InputError
 from gloam_jax.gicp import GICPConfig
-from gloam_jax.odometry import Odometry, OdometryConfig, remap
+from gloam_jax.neighbors import KdTree
+from gloam_jax.odometry import LocalMap, Odometry, OdometryConfig, remap
 from gloam_jax.preprocess import (
     VoxelCentres,
     azimuth_times,
@@ -24,7 +26,7 @@ from gloam_jax.preprocess import (
     preprocess_scan,
     voxel_centres,
 )
-from gloam_jax.registration import align_prepared, conditioning, prepare
+from gloam_jax.registration import PreparedCloud, align_prepared, conditioning, prepare
 from gloam_jax.timing import STAGES
 
 
@@ -452,10 +454,18 @@ def test_simulated_degenerate_scenes_are_flagged(kind):
         assert np.linalg.norm(weak[:, 0]) > 0.9  # x, along the drive, lies in their span
 
 
-@pytest.mark.parametrize("mode", ["frame_to_model", "frame_to_frame"])
-def test_a_restored_state_registers_the_next_frames_exactly(sim_sequence, tmp_path, mode):
+@pytest.mark.parametrize(
+    "mode, map_resolution", [("frame_to_model", 0.0), ("frame_to_frame", 0.0),
+                             ("frame_to_model", 0.5)]
+)  # fmt: skip
+def test_a_restored_state_registers_the_next_frames_exactly(
+    sim_sequence, tmp_path, mode, map_resolution
+):
     seq = io.KittiSequence(sim_sequence, "00")
     config = OdometryConfig(mode=mode)
+    if map_resolution:  # a voxel map of 3 keyframes, one every frame: old ones leave it
+        config = OdometryConfig(map_resolution=map_resolution, max_keyframes=3,
+                                keyframe_distance=0.1)  # fmt: skip
 
     def frame(i: int) -> tuple[np.ndarray, np.ndarray]:
         """Scan i, and at 8 scan 8 twice, 0.25 m apart in height: after the resume the
@@ -522,3 +532,39 @@ def test_standing_still_among_traffic_adds_little_drift(tmp_path):
         odometry.register_frame(seq.scan(i), seq.point_times(i), 0.1)
     metres, degrees = probe.stop_drift(np.stack(odometry.poses), gt, first, last)
     assert metres < 0.05 and degrees < 0.1, (metres, degrees)
+
+
+def test_the_voxel_map_keeps_each_voxels_newest_keyframe_points():
+    """Against the definition: a keyframe's point stays where no newer keyframe of the window
+    has a point in its voxel, rows in keyframe order; the merge is incremental, and a map
+    rebuilt from the same keyframes (a resume) has the same rows."""
+    rng = np.random.default_rng(3)
+    buckets = pc.StickyBuckets()
+    voxel_map = LocalMap(3, buckets, resolution=1.0)
+    clouds, poses = [], []
+    for i in range(6):
+        points = rng.uniform(-4, 4, (300, 3))
+        covs = np.tile(np.eye(3), (300, 1, 1))
+        cloud = PreparedCloud(points, covs, KdTree(points), normals=np.tile([0, 0, 1.0], (300, 1)),
+                              planarity=np.ones(300))  # fmt: skip
+        T = np.eye(4)
+        T[:3, 3] = [0.7 * i, 0.2 * i, 0.0]
+        voxel_map.add(cloud, T)
+        clouds.append(points + T[:3, 3])
+        poses.append(T)
+    expected = []
+    window = clouds[-3:]
+    for j, points in enumerate(window):
+        newer = {tuple(c) for p in window[j + 1 :] for c in np.floor(p).astype(int)}
+        expected += [x for x in points if tuple(np.floor(x).astype(int)) not in newer]
+    merged = voxel_map.cloud
+    np.testing.assert_array_equal(merged.points, np.array(expected))
+    assert len(merged.points) < sum(len(p) for p in window)
+    assert voxel_map.size == buckets.floor("map") >= len(merged.points)
+    rebuilt = LocalMap(3, pc.StickyBuckets(), resolution=1.0)
+    rebuilt.restore(voxel_map.keyframes, poses[-1])
+    np.testing.assert_array_equal(rebuilt.cloud.points, merged.points)
+    np.testing.assert_array_equal(rebuilt.cloud.covs, merged.covs)
+    # the tree answers over the merged rows
+    index, found = merged.tree.query(merged.points[:5] + 0.01, 1)
+    assert found.all() and (index[:, 0] == np.arange(5)).all()

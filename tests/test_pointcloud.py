@@ -100,3 +100,16 @@ def test_voxel_means_of_several_arrays_keep_their_dtypes():
     both = pc.voxel_downsample(np.column_stack([points, features]), 1.5)
     np.testing.assert_allclose(xyz, both[:, :3], atol=1e-12)
     np.testing.assert_allclose(feats, both[:, 3:], atol=1e-5)
+
+
+def test_voxel_keys_name_world_voxels_across_clouds():
+    a = np.array([[0.1, 0.1, 0.1], [0.6, -0.1, 0.0], [-1000.2, 3.3, 7.9]])
+    b = a + 0.3  # moves the first point within its 0.5 m voxel, the others out of theirs
+    ka, kb = pc.voxel_keys(a, 0.5), pc.voxel_keys(b, 0.5)
+    assert ka.dtype == np.int64 and ka[0] == kb[0] and (ka[1:] != kb[1:]).all()
+    assert len(set(ka.tolist())) == 3
+    # keys of cells differing in one axis only differ
+    cells = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0]]) * 0.5 + 0.25
+    assert len(set(pc.voxel_keys(cells, 0.5).tolist())) == 5
+    with pytest.raises(ValueError, match="km from the origin"):
+        pc.voxel_keys(np.array([[6e5, 0.0, 0.0]]), 0.5)

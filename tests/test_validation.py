@@ -36,6 +36,7 @@ def test_gicp_settings(field, value, message):
     [
         ("max_keyframes", 0, "max_keyframes must be an integer >= 1"),
         ("keyframe_distance", 0.0, "keyframe_distance must be positive"),
+        ("map_resolution", -0.5, "map_resolution must be 0 or positive"),
     ],
 )
 def test_odometry_settings(field, value, message):
