@@ -1,8 +1,9 @@
 """Probe: how many of the local map's points share a voxel, and what the tree costs each way.
 
-Runs `gicp` over the first 200 frames of val 403 d0, then times the k-d tree build and one
-k = 1 query of the last scan against the map as it is (every keyframe's points) and with one
-point per voxel kept (the newest keyframe's), at 0.5 and 0.25 m.
+Runs `gicp` over the first N frames of val 403 d0 (`probe_map.py data/long N`), then times
+the k-d tree build and one k = 1 and k = 5 query of the last scan against the map as it is
+(every keyframe's points) and with one point per voxel kept (the newest keyframe's), at 0.5
+and 0.25 m.
 """
 
 import sys
@@ -47,9 +48,9 @@ for label, pts in [("all", map_points)] + [
     (f"voxel {r}", map_points[newest_per_voxel(map_points, r)]) for r in (0.5, 0.25)
 ]:
     tree = cKDTree(pts, leafsize=32, balanced_tree=False, compact_nodes=False)
-    build = best(lambda: cKDTree(pts, leafsize=32, balanced_tree=False, compact_nodes=False))
-    q1 = best(lambda: tree.query(query, k=1, distance_upper_bound=1.0, workers=-1))
-    q5 = best(lambda: tree.query(query, k=5, distance_upper_bound=1.0, workers=-1))
+    build = best(lambda p=pts: cKDTree(p, leafsize=32, balanced_tree=False, compact_nodes=False))
+    q1 = best(lambda tree=tree: tree.query(query, k=1, distance_upper_bound=1.0, workers=-1))
+    q5 = best(lambda tree=tree: tree.query(query, k=5, distance_upper_bound=1.0, workers=-1))
     print(f"{label}: {len(pts)} points, build {build:.1f} ms, query k1 {q1:.1f} ms, k5 {q5:.1f} ms")
 dedup = best(lambda: newest_per_voxel(map_points, 0.5))
 print(f"dedup 0.5 m: {dedup:.1f} ms")
