@@ -264,7 +264,11 @@ def main() -> None:
     parser.add_argument("--sequences", nargs="+", required=True)
     parser.add_argument("--frames", type=int, default=None)
     parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--configs", type=Path, default=Path("configs"), help="<method>.yaml")
+    parser.add_argument(
+        "--configs", type=Path, default=Path("configs"),
+        help="folder of <method>.yaml; a base: that names a config (base: gicp) still reads the "
+        "shipped one, a path (base: ./gicp.yaml) this folder's",
+    )  # fmt: skip
     parser.add_argument("--weights", type=Path, default=None, help="model for learned methods")
     parser.add_argument("--methods", default="gicp,small_gicp,kiss-icp")
     parser.add_argument("--out", type=Path, default=Path("bench_odometry.json"))
