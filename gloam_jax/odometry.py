@@ -151,12 +151,16 @@ class LocalMap:
             self.restore([*self.keyframes, keyframe], T_world_lidar)
             return
         self.keyframes = [*self.keyframes, keyframe][-self.max_keyframes :]
+        self._fold(keyframe)
+        self.last_pose = T_world_lidar
+
+    def _fold(self, keyframe: dict) -> None:
+        """Queue the voxel map's merge of the next keyframe after the one pending."""
         self._pending = self._worker.submit(
             _voxel_merge, self._pending, keyframe, self._added, self.max_keyframes,
             self.resolution,
         )  # fmt: skip
         self._added += 1
-        self.last_pose = T_world_lidar
 
     def restore(self, keyframes: list[dict], last_pose: np.ndarray) -> None:
         """The map of ``keyframes`` (world-frame columns, oldest first; the last ``max_keyframes``
@@ -164,13 +168,9 @@ class LocalMap:
         self.keyframes = keyframes[-self.max_keyframes :]
         self.last_pose = last_pose
         if self.resolution:
-            self._pending = None
-            for number, keyframe in enumerate(self.keyframes):
-                self._pending = self._worker.submit(
-                    _voxel_merge, self._pending, keyframe, number, self.max_keyframes,
-                    self.resolution,
-                )  # fmt: skip
-            self._added = len(self.keyframes)
+            self._pending, self._added = None, 0
+            for keyframe in self.keyframes:
+                self._fold(keyframe)
             return
         # The scans' size holds every keyframe (they were scans); grown here for keyframes from
         # elsewhere. Sized on this thread, not the worker's: StickyBuckets is not thread-safe.
