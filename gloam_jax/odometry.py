@@ -113,7 +113,7 @@ class LocalMap:
 
     Merging (concatenation, k-d tree, padded device arrays) runs on a worker thread: the next
     frame's preprocessing is mostly single-threaded NumPy, so the tree build overlaps it on
-    another core instead of adding to the frame's time (scipy builds trees without the GIL).
+    another core instead of adding to the frame's time (the k-d tree is built without the GIL).
 
     With a ``resolution`` (m), the map keeps one keyframe's points per voxel of that size, the
     newest keyframe's that has any there: the union of overlapping keyframes holds each

@@ -29,11 +29,11 @@ from typing import Any
 
 import numpy as np
 from scipy import ndimage, sparse
-from scipy.spatial import cKDTree
 
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
 from gloam_jax.features.pca import FeaturePCA
+from gloam_jax.neighbors import KdTree
 
 EIGEN_FEATURES = (
     "linearity",
@@ -230,10 +230,7 @@ class GeometricBackbone:
         voxels, inverse, counts = _voxelize(xyz, self.voxel_size)
 
         k_max = min(self.scales[-1], len(voxels))
-        dist, idx = cKDTree(voxels, balanced_tree=False, compact_nodes=False).query(
-            voxels, k=k_max, workers=-1
-        )
-        dist, idx = dist.reshape(len(voxels), k_max), idx.reshape(len(voxels), k_max)
+        dist, idx = KdTree(voxels).nearest(voxels, k_max)
         # Neighbourhood sums of first and second moments as sparse (M, M) selection matrices
         # times per-voxel moments; float64 keeps ``E[xx] - E[x]^2`` exact enough at 100 m.
         moments = np.concatenate(

@@ -33,12 +33,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 from scipy.stats import rankdata
 
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
 from gloam_jax.io.files import write_npz
+from gloam_jax.neighbors import KdTree
 
 # Training classes: SemanticKITTI ids; moving objects fold into their static class (one scan
 # cannot tell motion).
@@ -212,11 +212,10 @@ def voxelize(scan: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarra
     return means[:, :3], intensity, inverse
 
 
-def _knn(tree: cKDTree, queries: np.ndarray, k: int) -> np.ndarray:
+def _knn(tree: KdTree, queries: np.ndarray, k: int) -> np.ndarray:
     """Indices (Q, k) of the k nearest tree points; short clouds repeat the nearest."""
-    k_eff = min(k, tree.n)
-    _, idx = tree.query(queries, k=k_eff, workers=-1)
-    idx = idx.reshape(len(queries), k_eff)
+    k_eff = min(k, len(tree))
+    idx = tree.nearest(queries, k_eff)[1]
     if k_eff < k:
         idx = np.concatenate([idx, np.repeat(idx[:, :1], k - k_eff, axis=1)], axis=1)
     return idx.astype(np.int32)
@@ -236,8 +235,8 @@ def build_inputs(
     m = len(xyz)
     size = pc.bucket_size(m) if size is None else size
     sub = sample_level1(m, config.ratio)
-    nbr0 = _knn(cKDTree(xyz), xyz, config.k)
-    tree1 = cKDTree(xyz[sub])
+    nbr0 = _knn(KdTree(xyz), xyz, config.k)
+    tree1 = KdTree(xyz[sub])
     nbr1 = _knn(tree1, xyz[sub], config.k)
     up = _knn(tree1, xyz, 1)[:, 0]
     columns = [np.linalg.norm(xyz, axis=1) / _RANGE_SCALE, xyz[:, 2] / _HEIGHT_SCALE]
