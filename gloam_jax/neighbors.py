@@ -4,15 +4,24 @@ The tree (pykdtree's: the same exact neighbours as scipy's cKDTree, built and qu
 times faster, experiments/pykdtree) is built once per cloud; queries return ``(N, K)`` int32
 indices and a boolean mask (False where a neighbour is farther than ``max_distance`` or
 absent), so everything downstream works on static shapes and chooses among the candidates in
-JAX. Both release the GIL and run on OpenMP's threads (``OMP_NUM_THREADS``).
+JAX. It releases the GIL and runs on OpenMP's threads (``OMP_NUM_THREADS``).
 """
 
 from __future__ import annotations
 
-import numpy as np
-from pykdtree.kdtree import KDTree
+import os
 
-from gloam_jax.errors import InputError
+import numpy as np
+
+# OpenMP's threads otherwise spin for a while after each query, waiting for the next; on two
+# cores shared with the prefetch thread, the map's worker and XLA that spin was a fifth of the
+# odometry's CPU time (experiments/pykdtree). Read when pykdtree's OpenMP library loads, so set
+# before its import; a user's own setting wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from pykdtree.kdtree import KDTree  # noqa: E402
+
+from gloam_jax.errors import InputError  # noqa: E402
 
 
 class KdTree:
