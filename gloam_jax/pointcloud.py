@@ -74,6 +74,14 @@ def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.nda
     return points[range_mask(points, min_range, max_range)[0]]
 
 
+def _argsort_keys(key: np.ndarray) -> np.ndarray:
+    """Stable argsort (N,) of non-negative integer keys below 2**32: two passes of NumPy's
+    radix sort of 16-bit keys, low half first (a scan's sort in 1.7 ms where the default
+    argsort of the same keys as uint32 takes 5.5, experiments/pykdtree)."""
+    order = np.argsort((key & 0xFFFF).astype(np.uint16), kind="stable")
+    return order[np.argsort((key[order] >> 16).astype(np.uint16), kind="stable")]
+
+
 def _voxel_groups(
     points: np.ndarray, voxel_size: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -90,13 +98,9 @@ def _voxel_groups(
             None, f"points spanning {dims} voxels of {voxel_size} m are too far apart to voxelise"
         )
     x, y, z = ((c - lo).astype(np.int64) for c, lo in zip(cells, lows, strict=True))
-    # One integer per voxel in mixed radix keeps the (x, y, z) order. NumPy's default argsort
-    # of 32-bit keys (most scans) is vectorised, unlike a stable sort or np.unique on 64-bit
-    # keys; the order within a voxel does not matter.
+    # One integer per voxel in mixed radix keeps the (x, y, z) order.
     key = (x * dims[1] + y) * dims[2] + z
-    if dims[0] * dims[1] * dims[2] < 1 << 32:
-        key = key.astype(np.uint32)
-    order = np.argsort(key)
+    order = _argsort_keys(key) if dims[0] * dims[1] * dims[2] < 1 << 32 else np.argsort(key)
     sorted_key = key[order]
     starts = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
     counts = np.diff(np.r_[starts, len(key)])
