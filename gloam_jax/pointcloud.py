@@ -58,14 +58,18 @@ def range_mask(
     scans are errors."""
     points = check_points(points, source)
     xyz = points[:, :3]
-    valid = _valid_rows(xyz)
+    # In float64: float32 squares of valid coordinates (up to 1e8) would overflow to inf.
+    r2 = np.einsum("ij,ij->i", xyz, xyz, dtype=np.float64)
+    # Within MAX_COORDINATE of the origin every axis is too: only the rest (NaN, inf, far)
+    # needs the per-axis test, which costs more than the squared range itself.
+    valid = r2 <= MAX_COORDINATE * MAX_COORDINATE
+    unsure = np.flatnonzero(~valid)
+    valid[unsure] = _valid_rows(xyz[unsure])
     invalid = int(np.count_nonzero(~valid))
     if invalid == len(points):
         raise InputError(
             source, f"all {len(points)} points are NaN, infinite or beyond {MAX_COORDINATE:g} m"
         )
-    # In float64: float32 squares of valid coordinates (up to 1e8) would overflow to inf.
-    r2 = np.einsum("ij,ij->i", xyz, xyz, dtype=np.float64)
     return valid & (r2 >= min_range * min_range) & (r2 <= max_range * max_range), invalid
 
 
