@@ -200,12 +200,15 @@ class StickyBuckets:
         self._floor = dict(floors)
 
 
-def pad(array: np.ndarray, size: int, fill: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Pad the leading axis to ``size``: (N, ...) -> ((size, ...), mask (size,) True for real)."""
+def pad(
+    array: np.ndarray, size: int, fill: float = 0.0, dtype=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pad the leading axis to ``size``: (N, ...) -> ((size, ...), mask (size,) True for real),
+    in ``dtype`` (default: the array's)."""
     n = len(array)
     if n > size:
         raise ValueError(f"cannot pad {n} rows into {size}")
-    out = np.full((size, *array.shape[1:]), fill, dtype=array.dtype)
+    out = np.full((size, *array.shape[1:]), fill, dtype=array.dtype if dtype is None else dtype)
     out[:n] = array
     mask = np.zeros(size, dtype=bool)
     mask[:n] = True
