@@ -130,7 +130,8 @@ def voxel_means(
     order, starts, counts = _voxel_groups(points, voxel_size)
     out = []
     for a in columns:
-        sums = np.add.reduceat(a[order], starts, axis=0)
+        # np.take gathers rows several times faster than a[order] (same values).
+        sums = np.add.reduceat(np.take(a, order, axis=0), starts, axis=0)
         out.append((sums / counts.reshape(-1, *([1] * (a.ndim - 1)))).astype(a.dtype))
     return out
 
