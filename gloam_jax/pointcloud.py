@@ -81,7 +81,7 @@ def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.nda
 def _argsort_keys(key: np.ndarray) -> np.ndarray:
     """Stable argsort (N,) of non-negative integer keys below 2**32: two passes of NumPy's
     radix sort of 16-bit keys, low half first (a scan's sort in 1.7 ms where the default
-    argsort of the same keys as uint32 takes 5.5, experiments/pykdtree)."""
+    argsort of the same keys as uint32 takes 5.5, experiments/voxel_sort)."""
     order = np.argsort((key & 0xFFFF).astype(np.uint16), kind="stable")
     return order[np.argsort((key[order] >> 16).astype(np.uint16), kind="stable")]
 
