@@ -144,6 +144,11 @@ SPLITS: dict[str, tuple[World, ...]] = {
         World("406", "05", 1700, "urban", "vlp16", True, LONG_FRAMES, LONG_METRES),
         World("407", "07", 0, "suburban", "vlp16", False, LONG_FRAMES, LONG_METRES),
         World("408", "09", 0, "suburban", "vlp16", True, LONG_FRAMES, LONG_METRES),
+        # Added after experiments/map_voxels (chosen on 401-405): three more HDL-64 worlds on
+        # which a per-sensor map resolution is decided (experiments/map_voxels_by_sensor).
+        World("409", "09", 0, "forest", "hdl64", True, LONG_FRAMES, LONG_METRES),
+        World("410", "03", 0, "urban", "hdl64", True, LONG_FRAMES, LONG_METRES),
+        World("411", "05", 1200, "suburban", "hdl64", False, LONG_FRAMES, LONG_METRES),
     ),
     "test_long": (
         World("501", "00", 0, "urban", "hdl64", True, LONG_FRAMES, LONG_METRES),
