@@ -32,6 +32,7 @@ from gloam_jax.models import GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
 from gloam_jax.preprocess import PreprocessConfig, VoxelCentres, deskew_centres, voxel_centres
 from gloam_jax.registration import PreparedCloud, align_prepared, build_cloud
+from gloam_jax.sensor import SensorSignature, measure
 from gloam_jax.timing import StageTimer
 
 
@@ -52,9 +53,10 @@ class OdometryConfig:
     keyframe_angle_deg: float = 15.0
     max_keyframes: int = 10  # local map size
     # m; per voxel of this size the local map keeps only the newest keyframe's points (0:
-    # every keyframe's points; see LocalMap). 0.5 runs gicp 19 % faster, better on HDL-64 but
-    # worse on VLP-16 and HDL-32 (experiments/map_voxels)
-    map_resolution: float = 0.0
+    # every keyframe's points; see LocalMap); auto: by the scans' measured sensor
+    # (resolve_map_resolution). 0.5 runs gicp 19 % faster, better on HDL-64 but worse on
+    # VLP-16 and HDL-32 (experiments/map_voxels, map_voxels_by_sensor)
+    map_resolution: float | Literal["auto"] = 0.0
     preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
     gicp: GICPConfig = field(default_factory=GICPConfig)
 
@@ -76,7 +78,38 @@ class OdometryConfig:
         check_setting(is_int(self.max_keyframes, 1), "max_keyframes", "an integer >= 1",
                       self.max_keyframes)  # fmt: skip
         r = self.map_resolution
-        check_setting(r == 0 or is_positive(r), "map_resolution", "0 or positive (m)", r)
+        ok = r == "auto" or (not isinstance(r, str | bool) and (r == 0 or is_positive(r)))
+        check_setting(ok, "map_resolution", "0, positive (m) or auto", r)
+
+
+# map_resolution: auto. Dense sensors get the voxel map: on HDL-64 worlds it made GICP better
+# and faster; on VLP-16 and HDL-32 worlds worse, where the overlapping, differently placed ring
+# points of several keyframes are what the pairing lives on (experiments/map_voxels, chosen on
+# new worlds in experiments/map_voxels_by_sensor). Dense: at least 40 rings measured, more than
+# a 32-beam sensor shows (at most 37, gloam_jax.sensor's tolerance); a 64-beam one whose top
+# rings see only sky still shows 46-64 (the presets on highways, experiments/sensor_guard).
+DENSE_RINGS = 40
+DENSE_MAP_RESOLUTION = 0.5  # m
+
+
+def resolve_map_resolution(
+    setting: float | str, sensor: SensorSignature | None
+) -> tuple[float, str]:
+    """The local map's resolution (m) for ``setting`` (a number, or ``auto``) and the scans'
+    measured ``sensor`` (None: not measurable), and why."""
+    if setting != "auto":
+        return float(setting), "set"
+    if sensor is None:
+        return 0.0, "auto: the sensor could not be measured, so every keyframe's points"
+    if sensor.rings >= DENSE_RINGS:
+        return DENSE_MAP_RESOLUTION, (
+            f"auto: {sensor.rings} rings measured (at least {DENSE_RINGS}), so one keyframe's "
+            f"points per {DENSE_MAP_RESOLUTION:g} m voxel"
+        )
+    return 0.0, (
+        f"auto: {sensor.rings} rings measured (fewer than {DENSE_RINGS}), so every keyframe's "
+        "points"
+    )
 
 
 @dataclass
@@ -289,7 +322,10 @@ class Odometry:
         self.velocity_dt = 1.0  # s, that interval
         self.previous: PreparedCloud | None = None
         self.buckets = pc.StickyBuckets()
-        self.map = LocalMap(config.max_keyframes, self.buckets, config.map_resolution)
+        # map_resolution: auto waits for the first raw scan's sensor (_resolve_map)
+        self.map = LocalMap(config.max_keyframes, self.buckets, 0.0)
+        if config.map_resolution != "auto":
+            self.map.resolution = float(config.map_resolution)
         # The first two frames' inputs, kept until the first velocity redoes them (_redo_start).
         self._start: list[tuple] = []
 
@@ -345,6 +381,8 @@ class Odometry:
         # A frame's NumPy products are thin ((N, 3) @ (3, 3), (N, D) @ (D, 6)): threaded BLAS
         # only fights XLA's and the k-d tree's threads for the cores.
         try:
+            if self.config.map_resolution == "auto":
+                self._resolve_map(scan, source)
             with self._threads.limit(limits=1, user_api="blas"):
                 inputs = (scan, times, frame_dt, source, features)
                 if len(self.poses) < 2 and self.config.preprocess.deskew != "off":
@@ -356,6 +394,25 @@ class Odometry:
             stage_ms = self.timer.take(1e3 * (time.perf_counter() - start))
         self.status[-1].stage_ms = stage_ms
         return T
+
+    def _resolve_map(self, scan: np.ndarray | VoxelCentres | None, source: str | None) -> None:
+        """``map_resolution: auto`` made a number from the first scan's measured sensor
+        (``gloam run`` resolves it before, from its first three scans)."""
+        if isinstance(scan, VoxelCentres):
+            raise InputError(
+                source,
+                "map_resolution: auto measures the sensor on the first raw scan, not on voxel "
+                "centres; give it raw, or set a number",
+            )
+        if scan is None:  # an unreadable scan: the next one decides
+            return
+        try:
+            sensor: SensorSignature | None = measure([scan])
+        except InputError:
+            sensor = None
+        resolution, _ = resolve_map_resolution("auto", sensor)
+        self.config = replace(self.config, map_resolution=resolution)
+        self.map.resolution = resolution
 
     # The columns of a prepared cloud that a state keeps (the k-d tree is rebuilt from them).
     _COLUMNS: ClassVar[tuple[str, ...]] = ("points", "covs", "features", "normals", "planarity")
@@ -394,6 +451,9 @@ class Odometry:
     def restore(self, state: dict[str, np.ndarray], status: list[FrameStatus]) -> None:
         """Continue from a :meth:`state` (of a run with these settings and this model), with
         the statuses of its frames."""
+        if self.config.map_resolution == "auto":
+            raise InputError(None, "map_resolution: auto must be resolved (as gloam run does, "
+                             "resolve_map_resolution) before a state is restored")  # fmt: skip
         self.poses = list(np.asarray(state["poses"], np.float64))
         if len(status) != len(self.poses):
             raise ValueError(f"{len(status)} statuses for {len(self.poses)} frames")

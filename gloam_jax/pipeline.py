@@ -55,7 +55,7 @@ from gloam_jax.features import Backbone, get_backbone, intensity_warning
 from gloam_jax.guard import Choice, choose
 from gloam_jax.interrupt import interrupt_for, stop_between
 from gloam_jax.models import GLOAMModel
-from gloam_jax.odometry import FrameStatus, Odometry, OdometryConfig
+from gloam_jax.odometry import FrameStatus, Odometry, OdometryConfig, resolve_map_resolution
 from gloam_jax.preprocess import (
     ONE_INSTANT,
     VoxelCentres,
@@ -63,7 +63,7 @@ from gloam_jax.preprocess import (
     detect_time_convention,
     resolve_deskew,
 )
-from gloam_jax.sensor import SENSOR_SCANS
+from gloam_jax.sensor import SENSOR_SCANS, SensorSignature, measure
 
 Item = TypeVar("Item")
 # a frame's scan (N, 4), point times (N,) or None, features (N, D) or None, ms per stage
@@ -177,7 +177,8 @@ def run_dataset(
     check_units(dataset.frame(frames[0])[0], config.preprocess, dataset.scan_path(frames[0]))
     resolved, deskew = plan_deskew(dataset, config, frames[0])
     choice = choose_model(dataset, resolved, frames, features_dir)
-    odometry = Odometry(choice.config, choice.model)
+    settings, map_record = plan_map(dataset, choice, frames)
+    odometry = Odometry(settings, choice.model)
     backbone = _backbone(odometry, features_dir)
     times = dataset.times
     record = {
@@ -196,6 +197,7 @@ def run_dataset(
              "dataset_details": dict(dataset.details),
              "frames": {"start": frames.start, "stride": frames.step, "count": n},
              "model_choice": choice.record, "warnings": record["warnings"],
+             "map": map_record,
              "skipped_frames": record["skipped"],
              "frames_after_a_gap": time_gaps(times[np.asarray(frames)])}  # fmt: skip
 
@@ -505,6 +507,23 @@ def choose_model(
         return backbone(scans[k], path=dataset.scan_path(first[k]), frame=first[k])
 
     return choose(config, scans, features)
+
+
+def plan_map(dataset: Dataset, choice: Choice, frames: range) -> tuple[OdometryConfig, dict]:
+    """The chosen settings with ``map_resolution`` a number (``auto``: by the sensor measured
+    on the first scans, :func:`~gloam_jax.odometry.resolve_map_resolution`), and a record of
+    it for metrics.json (``map``: the setting, the resolution, why)."""
+    setting = choice.config.map_resolution
+    sensor = None
+    if setting == "auto":
+        if choice.record.get("sensor") is not None:  # measured already for the model choice
+            sensor = SensorSignature.from_dict(choice.record["sensor"])
+        else:
+            with suppress(InputError):  # too few points to tell: resolved as unmeasured
+                sensor = measure([dataset.frame(i)[0] for i in frames[:SENSOR_SCANS]])
+    resolution, reason = resolve_map_resolution(setting, sensor)
+    record = {"setting": setting, "resolution": resolution, "reason": reason}
+    return dataclasses.replace(choice.config, map_resolution=resolution), record
 
 
 def _backbone(odometry: Odometry, features_dir: str | Path | None) -> Backbone | None:

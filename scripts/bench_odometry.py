@@ -69,12 +69,20 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
 
     from gloam_jax.datasets import open_dataset
     from gloam_jax.odometry import Odometry
-    from gloam_jax.pipeline import VoxelPlacement, choose_model, prefetched, timed_input
+    from gloam_jax.pipeline import (
+        VoxelPlacement,
+        choose_model,
+        plan_map,
+        prefetched,
+        timed_input,
+    )
 
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
-    choice = choose_model(open_dataset(seq.root, seq.sequence), config, range(n), None)
-    odometry = Odometry(choice.config, choice.model)
+    dataset = open_dataset(seq.root, seq.sequence)
+    choice = choose_model(dataset, config, range(n), None)
+    settings, map_record = plan_map(dataset, choice, range(n))
+    odometry = Odometry(settings, choice.model)
     backbone = None
     if odometry.needs_features:
         backbone = odometry.model.backbone()
@@ -121,6 +129,7 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         "frame_ms": frame_summary(frame_ms),
         "queries_per_frame": float(np.mean([s.queries for s in odometry.status[1:]])),
         "model_choice": choice.record,
+        "map": map_record,
     }
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))

@@ -15,6 +15,7 @@ from gloam_jax.features.novelty import FeatureNovelty
 from gloam_jax.guard import choose
 from gloam_jax.io import read_scan
 from gloam_jax.models import load_model, save_model, shipped_model_path
+from gloam_jax.odometry import Odometry, resolve_map_resolution
 from gloam_jax.pipeline import run_sequence
 from gloam_jax.sensor import SensorSignature, first_match, matches, measure
 from gloam_jax.simulate import SENSORS, draw_world, simulate
@@ -163,3 +164,47 @@ def test_features_outside_the_models_region_guard_or_warn(real, tmp_path, monkey
     monkeypatch.setattr("gloam_jax.guard.load_model", lambda name: load_model(path))
     choice = choose(load_config("gloam"), real[:3], _stub_features)
     assert choice.record["decision"] == "guard: gicp" and choice.config.method == "gicp"
+
+
+def test_map_resolution_auto_follows_the_measured_rings(presets, real):
+    dense = {"hdl64": 0.5, "os1-64": 0.5, "vlp16": 0.0, "hdl32": 0.0}
+    for name, (_, measured, _) in presets.items():
+        resolution, why = resolve_map_resolution("auto", measured)
+        assert resolution == dense[name], f"{name}: {why}"
+        assert f"{measured.rings} rings measured" in why
+    assert resolve_map_resolution("auto", measure(real[:3]))[0] == 0.5  # real KITTI: HDL-64E
+    assert resolve_map_resolution("auto", None) == (0.0, pytest.approx(
+        "auto: the sensor could not be measured, so every keyframe's points"))  # fmt: skip
+    assert resolve_map_resolution(0.25, None) == (0.25, "set")
+
+
+@pytest.mark.parametrize("sensor", ["vlp16", "hdl64"])
+def test_a_run_resolves_map_resolution_auto_as_the_number_would_run(presets, tmp_path, sensor):
+    """``auto`` runs exactly as the number it resolves to, says which in metrics.json, and the
+    Odometry API resolves it alike from its first raw scan."""
+    root = presets[sensor][2]
+    auto = dataclasses.replace(load_config("gicp"), map_resolution="auto")
+    result = run_sequence(root, "00", auto, tmp_path / "auto", frames=2)
+    resolution = {"vlp16": 0.0, "hdl64": 0.5}[sensor]
+    written = json.loads((tmp_path / "auto" / "metrics.json").read_text())["map"]
+    assert written == result["map"]
+    assert written["setting"] == "auto" and written["resolution"] == resolution
+    fixed = dataclasses.replace(auto, map_resolution=resolution)
+    run_sequence(root, "00", fixed, tmp_path / "fixed", frames=2)
+    poses = [np.loadtxt(tmp_path / run / "00_poses_kitti.txt") for run in ("auto", "fixed")]
+    np.testing.assert_array_equal(*poses)
+    scans = [read_scan(p) for p in sorted((root / "sequences/00/velodyne").glob("*.bin"))]
+    odometry = Odometry(auto)
+    odometry.register_frame(scans[0])
+    assert odometry.config.map_resolution == resolution == odometry.map.resolution
+
+
+def test_map_resolution_auto_needs_a_raw_scan_or_a_resolved_state(presets):
+    root = presets["hdl64"][2]
+    scan = read_scan(sorted((root / "sequences/00/velodyne").glob("*.bin"))[0])
+    auto = dataclasses.replace(load_config("gicp"), map_resolution="auto")
+    odometry = Odometry(auto)
+    with pytest.raises(InputError, match="auto measures the sensor on the first raw scan"):
+        odometry.register_frame(odometry.voxel_centres(scan), source="000000.bin")
+    with pytest.raises(InputError, match="map_resolution: auto must be resolved"):
+        Odometry(auto).restore({}, [])

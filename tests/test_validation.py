@@ -36,7 +36,9 @@ def test_gicp_settings(field, value, message):
     [
         ("max_keyframes", 0, "max_keyframes must be an integer >= 1"),
         ("keyframe_distance", 0.0, "keyframe_distance must be positive"),
-        ("map_resolution", -0.5, "map_resolution must be 0 or positive"),
+        ("map_resolution", -0.5, r"map_resolution must be 0, positive \(m\) or auto"),
+        ("map_resolution", "fine", "map_resolution must be 0, positive .* not 'fine'"),
+        ("map_resolution", False, "map_resolution must be 0, positive .* not False"),
     ],
 )
 def test_odometry_settings(field, value, message):
