@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import numpy.typing as npt
 
 from gloam_jax.errors import InputError
 
@@ -202,7 +203,7 @@ class StickyBuckets:
 
 
 def pad(
-    array: np.ndarray, size: int, fill: float = 0.0, dtype=None
+    array: np.ndarray, size: int, fill: float = 0.0, dtype: npt.DTypeLike = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pad the leading axis to ``size``: (N, ...) -> ((size, ...), mask (size,) True for real),
     in ``dtype`` (default: the array's)."""

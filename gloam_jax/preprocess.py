@@ -259,8 +259,9 @@ def centre_rows(
     if config.downsampling_resolution <= 0:
         rows[keep] = np.arange(np.count_nonzero(keep))
     elif keep.any():
-        rows[keep] = pc.voxel_index(scan[keep, :3].astype(np.float64),
-                                    config.downsampling_resolution)[0]  # fmt: skip
+        # np.compress: the rows voxel_centres keeps, selected as it selects them
+        kept = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
+        rows[keep] = pc.voxel_index(kept, config.downsampling_resolution)[0]
     return rows
 
 

@@ -16,9 +16,11 @@ from gloam_jax.odometry import OdometryConfig
 from gloam_jax.pipeline import run_dataset, run_sequence, select_frames
 from gloam_jax.preprocess import (
     PreprocessConfig,
+    centre_rows,
     detect_time_convention,
     normalise_times,
     resolve_deskew,
+    voxel_centres,
 )
 from gloam_jax.simulate import ErrorSwitches, simulate
 
@@ -209,3 +211,20 @@ def test_zero_downsampling_is_off_and_old_boolean_deskew_still_loads(tmp_path):
     path.write_text("preprocess:\n  min_range: 50\n  max_range: 5\n")
     with pytest.raises(InputError, match="min_range"):
         load_config(path)
+
+
+@pytest.mark.parametrize("resolution", [0.5, 0.0])
+def test_centre_rows_average_raw_points_onto_the_voxel_centres(resolution):
+    """The map from raw points to the centres that fine-tuning averages its features with."""
+    rng = np.random.default_rng(3)
+    scan = np.c_[rng.uniform(-40, 40, (5000, 3)), rng.uniform(0, 1, 5000)]
+    scan[:20, :3] = 0.5  # inside min_range: dropped
+    scan[20:25, 0] = np.nan  # invalid: dropped
+    config = PreprocessConfig(downsampling_resolution=resolution, deskew="off")
+    rows = centre_rows(scan, config)
+    centres = voxel_centres(scan, None, config).points
+    assert np.all(rows[:25] == -1) and rows.max() == len(centres) - 1
+    kept = rows >= 0
+    counts = np.bincount(rows[kept])
+    means = np.stack([np.bincount(rows[kept], scan[kept, i]) / counts for i in range(3)], axis=1)
+    np.testing.assert_allclose(means, centres, atol=1e-9)
