@@ -117,6 +117,21 @@ def test_start_and_stride_score_against_the_matching_ground_truth(sim_sequence, 
     np.testing.assert_allclose(np.diff(times), 0.2, atol=1e-6)
 
 
+def test_a_run_says_how_map_resolution_auto_was_resolved(tmp_path):
+    config = tmp_path / "auto.yaml"
+    config.write_text("base: gicp\nmap_resolution: auto\n")
+    out = tmp_path / "results"
+    result = runner.invoke(app, ["run", str(shared_path("real_kitti16")), "--frames", "3",
+                                 "--config", str(config), "--out", str(out),
+                                 "--no-compilation-cache"])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    said = " ".join(result.output.split())  # the console wraps long lines
+    assert "local map: auto: 6" in said and "rings measured (at least 40)" in said
+    assert "one keyframe's points per 0.5 m voxel" in said
+    written = json.loads((out / "latest" / "metrics.json").read_text())["map"]
+    assert written["setting"] == "auto" and written["resolution"] == 0.5
+
+
 def test_real_kitti_scans_run_out_of_the_box_and_agree_with_small_gicp(tmp_path):
     data = shared_path("real_kitti16")
     out = tmp_path / "results"

@@ -134,6 +134,8 @@ def run_odometry(
                           f"the scan: {again} --on-bad-scan skip")  # fmt: skip
         raise
     console.print(f"  {result['deskew']['reason']}")
+    if result["map"]["setting"] == "auto":  # resolved by the scans' sensor: say how
+        console.print(f"  local map: {result['map']['reason']}")
     choice = result["model_choice"]
     if "decision" in choice:  # a learned method: which model ran, on which sensor, and why
         from gloam_jax.sensor import SensorSignature
