@@ -16,6 +16,7 @@ the times) is predicted over its whole gap.
 from __future__ import annotations
 
 import time
+from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import ClassVar, Literal
@@ -144,9 +145,10 @@ class FrameStatus:
 class LocalMap:
     """The last keyframes, in the world frame, merged into one prepared cloud.
 
-    Merging (concatenation, k-d tree, padded device arrays) runs on a worker thread: the next
-    frame's preprocessing is mostly single-threaded NumPy, so the tree build overlaps it on
-    another core instead of adding to the frame's time (the k-d tree is built without the GIL).
+    Merging (k-d tree, padded device arrays) runs on a worker thread: the next frame's
+    preprocessing is mostly single-threaded NumPy, so the tree build overlaps it on another
+    core instead of adding to the frame's time (the k-d tree is built without the GIL). The
+    keyframes' rows are kept end to end (:class:`_Rows`), so a keyframe copies its own rows.
 
     With a ``resolution`` (m), the map keeps one keyframe's points per voxel of that size, the
     newest keyframe's that has any there: the union of overlapping keyframes holds each
@@ -168,6 +170,7 @@ class LocalMap:
         # rows being the map's columns with each row's voxel key and keyframe number
         self._pending: Future | None = None
         self._added = 0  # keyframes added since the map was (re)started: the next one's number
+        self._rows = _Rows()  # without a resolution: the keyframes' columns, end to end
         # One worker: merges run in the order of their keyframes.
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="local-map")
 
@@ -180,12 +183,14 @@ class LocalMap:
             "normals": cloud.normals @ R.T,
             "planarity": cloud.planarity,
         }
-        if not self.resolution:
-            self.restore([*self.keyframes, keyframe], T_world_lidar)
-            return
         self.keyframes = [*self.keyframes, keyframe][-self.max_keyframes :]
-        self._fold(keyframe)
         self.last_pose = T_world_lidar
+        if self.resolution:
+            self._fold(keyframe)
+            return
+        self._rows.append(keyframe)
+        self._rows.keep(self.max_keyframes)
+        self._merge()
 
     def _fold(self, keyframe: dict) -> None:
         """Queue the voxel map's merge of the next keyframe after the one pending."""
@@ -205,10 +210,17 @@ class LocalMap:
             for keyframe in self.keyframes:
                 self._fold(keyframe)
             return
+        self._rows = _Rows()
+        for keyframe in self.keyframes:
+            self._rows.append(keyframe)
+        self._merge()
+
+    def _merge(self) -> None:
+        """Queue the merge of the keyframes' rows (k-d tree, padded device arrays)."""
         # The scans' size holds every keyframe (they were scans); grown here for keyframes from
         # elsewhere. Sized on this thread, not the worker's: StickyBuckets is not thread-safe.
         self.buckets("scan", max(len(k["points"]) for k in self.keyframes))
-        self._pending = self._worker.submit(_merge, list(self.keyframes), self.size)
+        self._pending = self._worker.submit(_merge, self._rows.view(), self.size)
 
     @property
     def size(self) -> int:
@@ -228,6 +240,7 @@ class LocalMap:
         self.keyframes, self.last_pose = [], None
         self._merged = self._pending = None
         self._added = 0
+        self._rows = _Rows()
 
     @property
     def cloud(self) -> PreparedCloud | None:
@@ -240,13 +253,55 @@ class LocalMap:
         return self._merged
 
 
-def _merge(keyframes: list[dict], size: int) -> PreparedCloud:
-    """One prepared cloud of world-frame keyframes, its device arrays padded to ``size`` (the
-    map's size when merged; a scan bucket grown since pads it again on first use)."""
-    merged = {
-        k: None if keyframes[0][k] is None else np.concatenate([f[k] for f in keyframes])
-        for k in keyframes[0]
-    }
+class _Rows:
+    """Keyframes' columns end to end, oldest first, as views of one buffer per column: a
+    keyframe joins by a copy of its own rows and leaves by moving the start, where
+    concatenating every keyframe again copied the whole map at each keyframe (11 ms for
+    340,000 rows, experiments/feature_budget). A full buffer is replaced by a new one, never
+    overwritten, so the views an earlier merge holds (the map in use, its k-d tree) stay
+    valid, and the rows are the concatenation's, bit for bit."""
+
+    def __init__(self) -> None:
+        self._buffers: dict[str, np.ndarray | None] = {}
+        self._start = self._end = 0
+        self._lengths: deque[int] = deque()
+
+    def append(self, keyframe: dict[str, np.ndarray | None]) -> None:
+        n = len(keyframe["points"])
+        if not self._buffers or self._end + n > len(self._buffers["points"]):
+            live = self._end - self._start
+            grown = {}
+            for name, column in keyframe.items():
+                if column is None:
+                    grown[name] = None
+                    continue
+                grown[name] = np.empty((2 * (live + n), *column.shape[1:]), column.dtype)
+                if live:
+                    grown[name][:live] = self._buffers[name][self._start : self._end]
+            self._buffers, self._start, self._end = grown, 0, live
+        for name, column in keyframe.items():
+            if column is not None:
+                self._buffers[name][self._end : self._end + n] = column
+        self._end += n
+        self._lengths.append(n)
+
+    def keep(self, count: int) -> None:
+        """Drop the oldest keyframes beyond the newest ``count``."""
+        while len(self._lengths) > count:
+            self._start += self._lengths.popleft()
+
+    def view(self) -> dict[str, np.ndarray | None]:
+        """The columns of the keyframes kept, oldest first (views, not copies)."""
+        return {
+            name: None if buffer is None else buffer[self._start : self._end]
+            for name, buffer in self._buffers.items()
+        }
+
+
+def _merge(merged: dict[str, np.ndarray | None], size: int) -> PreparedCloud:
+    """The prepared cloud of the world-frame keyframes' columns ``merged``, its device arrays
+    padded to ``size`` (the map's size when merged; a scan bucket grown since pads it again on
+    first use)."""
     cloud = PreparedCloud(tree=KdTree(merged["points"], "local map"), **merged)
     cloud.padded(size)
     return cloud
