@@ -16,8 +16,9 @@ from gloam_jax.cli import app
 from gloam_jax.config import dump_config, load_config
 from gloam_jax.errors import InputError
 from gloam_jax.gicp import GICPConfig
+from gloam_jax.local_map import LocalMap, _Rows
 from gloam_jax.neighbors import KdTree
-from gloam_jax.odometry import LocalMap, Odometry, OdometryConfig, remap
+from gloam_jax.odometry import Odometry, OdometryConfig, remap
 from gloam_jax.preprocess import (
     VoxelCentres,
     azimuth_times,
@@ -568,3 +569,26 @@ def test_the_voxel_map_keeps_each_voxels_newest_keyframe_points():
     # the tree answers over the merged rows
     index, found = merged.tree.query(merged.points[:5] + 0.01, 1)
     assert found.all() and (index[:, 0] == np.arange(5)).all()
+
+
+def test_the_map_rows_are_the_keyframes_concatenated_and_earlier_views_stay_valid():
+    rng = np.random.default_rng(0)
+    keyframes = [
+        {"points": rng.normal(size=(n, 3)), "covs": rng.normal(size=(n, 3, 3)),
+         "features": None, "planarity": rng.uniform(size=n).astype(np.float32)}
+        for n in (5, 9, 3, 12, 7, 30, 2, 8)
+    ]  # fmt: skip
+    rows, views = _Rows(), []
+    for j, keyframe in enumerate(keyframes):
+        rows.append(keyframe)
+        rows.keep(3)
+        view = rows.view()
+        kept = keyframes[max(0, j - 2) : j + 1]
+        assert view["features"] is None
+        for name in ("points", "covs", "planarity"):
+            expected = np.concatenate([k[name] for k in kept])
+            np.testing.assert_array_equal(view[name], expected)
+            assert view[name].dtype == expected.dtype
+        views.append((view, kept))
+    for view, kept in views:  # later keyframes (and new buffers) left every earlier view alone
+        np.testing.assert_array_equal(view["points"], np.concatenate([k["points"] for k in kept]))
