@@ -18,11 +18,10 @@ from dataclasses import dataclass
 import jax.numpy as jnp
 import numpy as np
 
-from gloam_jax.errors import InputError
 from gloam_jax.learned import METHODS
 from gloam_jax.models import SHIPPED, SHIPPED_MODELS, GLOAMModel, load_model
 from gloam_jax.odometry import OdometryConfig
-from gloam_jax.sensor import SensorSignature, first_match, measure
+from gloam_jax.sensor import SensorSignature, first_match, try_measure
 
 # The share of the first scans' points outside the model's feature region beyond which the
 # model is not trusted. The region holds 99 % of the training points (the quantile the
@@ -78,10 +77,7 @@ def choose(config: OdometryConfig, scans: Sequence[np.ndarray], features: Featur
     ``features`` gives a scan's backbone features for the novelty check."""
     if not any(METHODS[config.method]) or config.model is None:
         return Choice(config, None, {"model": None, "method": config.method})
-    try:
-        sensor: SensorSignature | None = measure(scans)
-    except InputError:
-        sensor = None
+    sensor = try_measure(scans)
     base = {"sensor": None if sensor is None else sensor.to_dict()}
 
     def record(model: str | None, cfg: OdometryConfig, decision: str, reason: str) -> dict:

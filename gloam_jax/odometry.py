@@ -32,7 +32,7 @@ from gloam_jax.models import GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
 from gloam_jax.preprocess import PreprocessConfig, VoxelCentres, deskew_centres, voxel_centres
 from gloam_jax.registration import PreparedCloud, align_prepared, build_cloud
-from gloam_jax.sensor import SensorSignature, measure
+from gloam_jax.sensor import SensorSignature, try_measure
 from gloam_jax.timing import StageTimer
 
 
@@ -194,9 +194,8 @@ class Odometry:
         self.previous: PreparedCloud | None = None
         self.buckets = pc.StickyBuckets()
         # map_resolution: auto waits for the first raw scan's sensor (_resolve_map)
-        self.map = LocalMap(config.max_keyframes, self.buckets, 0.0)
-        if config.map_resolution != "auto":
-            self.map.resolution = float(config.map_resolution)
+        resolution = 0.0 if config.map_resolution == "auto" else float(config.map_resolution)
+        self.map = LocalMap(config.max_keyframes, self.buckets, resolution)
         # The first two frames' inputs, kept until the first velocity redoes them (_redo_start).
         self._start: list[tuple] = []
 
@@ -277,11 +276,7 @@ class Odometry:
             )
         if scan is None:  # an unreadable scan: the next one decides
             return
-        try:
-            sensor: SensorSignature | None = measure([scan])
-        except InputError:
-            sensor = None
-        resolution, _ = resolve_map_resolution("auto", sensor)
+        resolution, _ = resolve_map_resolution("auto", try_measure([scan]))
         self.config = replace(self.config, map_resolution=resolution)
         self.map.resolution = resolution
 

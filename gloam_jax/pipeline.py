@@ -63,7 +63,7 @@ from gloam_jax.preprocess import (
     detect_time_convention,
     resolve_deskew,
 )
-from gloam_jax.sensor import SENSOR_SCANS, SensorSignature, measure
+from gloam_jax.sensor import SENSOR_SCANS, SensorSignature, try_measure
 
 Item = TypeVar("Item")
 # a frame's scan (N, 4), point times (N,) or None, features (N, D) or None, ms per stage
@@ -148,7 +148,7 @@ def run_dataset(
     Every scan of ``frames`` is checked (sizes, headers) and the scan times (increasing) before
     the first is registered; each scan's contents as it is read. ``auto`` deskewing is resolved
     by the data (:func:`plan_deskew`), the model (or the guard's plain GICP) by the first
-    scans' sensor (:func:`choose_model`). Learned methods get per-point features from the
+    scans' sensor (:func:`open_odometry`). Learned methods get per-point features from the
     model's backbone, or from one file per scan in ``features_dir`` (the ``precomputed``
     backbone). ``progress(k, ms)`` after the k-th frame. The next scan is read, its features
     computed and its voxel grid built (:meth:`Odometry.voxel_centres`, all that needs no
@@ -176,10 +176,8 @@ def run_dataset(
     check_times(dataset, frames)
     check_units(dataset.frame(frames[0])[0], config.preprocess, dataset.scan_path(frames[0]))
     resolved, deskew = plan_deskew(dataset, config, frames[0])
-    choice = choose_model(dataset, resolved, frames, features_dir)
-    settings, map_record = plan_map(dataset, choice, frames)
-    odometry = Odometry(settings, choice.model)
-    backbone = _backbone(odometry, features_dir)
+    setup = open_odometry(dataset, resolved, frames, features_dir)
+    odometry, backbone, choice = setup.odometry, setup.backbone, setup.choice
     times = dataset.times
     record = {
         "version": CHECKPOINT_VERSION, "dataset": dataset.name, "num_scans": len(dataset),
@@ -197,7 +195,7 @@ def run_dataset(
              "dataset_details": dict(dataset.details),
              "frames": {"start": frames.start, "stride": frames.step, "count": n},
              "model_choice": choice.record, "warnings": record["warnings"],
-             "map": map_record,
+             "map": setup.map,
              "skipped_frames": record["skipped"],
              "frames_after_a_gap": time_gaps(times[np.asarray(frames)])}  # fmt: skip
 
@@ -492,10 +490,24 @@ def save_progress(files: RunFiles, odometry: Odometry, config: OdometryConfig, r
     io.write_atomic(out / "metrics.json", json.dumps(metrics, indent=2))
 
 
-def choose_model(
+@dataclass(frozen=True)
+class RunSetup:
+    """What a run's first scans decide: the odometry (its model, or the guard's variant, and
+    its map resolution), the learned method's feature source (None otherwise), the model
+    choice (``choice.record``: metrics.json's ``model_choice``) and the map's record (``map``:
+    the setting, the resolution, why)."""
+
+    odometry: Odometry
+    backbone: Backbone | None
+    choice: Choice
+    map: dict
+
+
+def open_odometry(
     dataset: Dataset, config: OdometryConfig, frames: range, features_dir: str | Path | None
-) -> Choice:
-    """The model for a run (:func:`gloam_jax.guard.choose`), judged on its first scans."""
+) -> RunSetup:
+    """The odometry for a run, set up on its first scans: the model by
+    :func:`gloam_jax.guard.choose`, ``map_resolution: auto`` by :func:`plan_map`."""
     first = frames[:SENSOR_SCANS]
     scans = [dataset.frame(i)[0] for i in first]
 
@@ -506,21 +518,24 @@ def choose_model(
             backbone = model.backbone()
         return backbone(scans[k], path=dataset.scan_path(first[k]), frame=first[k])
 
-    return choose(config, scans, features)
+    choice = choose(config, scans, features)
+    settings, map_record = plan_map(choice, scans)
+    odometry = Odometry(settings, choice.model)
+    return RunSetup(odometry, _backbone(odometry, features_dir), choice, map_record)
 
 
-def plan_map(dataset: Dataset, choice: Choice, frames: range) -> tuple[OdometryConfig, dict]:
-    """The chosen settings with ``map_resolution`` a number (``auto``: by the sensor measured
-    on the first scans, :func:`~gloam_jax.odometry.resolve_map_resolution`), and a record of
-    it for metrics.json (``map``: the setting, the resolution, why)."""
+def plan_map(choice: Choice, scans: list[np.ndarray]) -> tuple[OdometryConfig, dict]:
+    """The chosen settings with ``map_resolution`` a number (``auto``: by the sensor of the
+    first ``scans``, :func:`~gloam_jax.odometry.resolve_map_resolution`), and a record of it
+    for metrics.json (``map``: the setting, the resolution, why)."""
     setting = choice.config.map_resolution
     sensor = None
     if setting == "auto":
-        if choice.record.get("sensor") is not None:  # measured already for the model choice
-            sensor = SensorSignature.from_dict(choice.record["sensor"])
+        if "sensor" in choice.record:  # measured already (or found unmeasurable) for the model
+            found = choice.record["sensor"]
+            sensor = None if found is None else SensorSignature.from_dict(found)
         else:
-            with suppress(InputError):  # too few points to tell: resolved as unmeasured
-                sensor = measure([dataset.frame(i)[0] for i in frames[:SENSOR_SCANS]])
+            sensor = try_measure(scans)
     resolution, reason = resolve_map_resolution(setting, sensor)
     record = {"setting": setting, "resolution": resolution, "reason": reason}
     return dataclasses.replace(choice.config, map_resolution=resolution), record

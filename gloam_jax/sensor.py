@@ -122,6 +122,14 @@ def measure(scans: Sequence[np.ndarray], name: str | None = None) -> SensorSigna
     )
 
 
+def try_measure(scans: Sequence[np.ndarray]) -> SensorSignature | None:
+    """:func:`measure`, or None where the scans hold too few points to tell."""
+    try:
+        return measure(scans)
+    except InputError:
+        return None
+
+
 # -- Tolerances. The presets' lowest rings lie 1.6 deg apart or more (VLP-16 -15, OS1-64
 # -16.6, HDL-64E -24.8, HDL-32E -30.67), their highest 1.6 deg or more (+2, +10.67, +15,
 # +16.6), and their ring counts a factor of 2 (16, 32, 64) but for the HDL-64E and OS1-64,

@@ -68,24 +68,12 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
     import dataclasses
 
     from gloam_jax.datasets import open_dataset
-    from gloam_jax.odometry import Odometry
-    from gloam_jax.pipeline import (
-        VoxelPlacement,
-        choose_model,
-        plan_map,
-        prefetched,
-        timed_input,
-    )
+    from gloam_jax.pipeline import VoxelPlacement, open_odometry, prefetched, timed_input
 
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
-    dataset = open_dataset(seq.root, seq.sequence)
-    choice = choose_model(dataset, config, range(n), None)
-    settings, map_record = plan_map(dataset, choice, range(n))
-    odometry = Odometry(settings, choice.model)
-    backbone = None
-    if odometry.needs_features:
-        backbone = odometry.model.backbone()
+    setup = open_odometry(open_dataset(seq.root, seq.sequence), config, range(n), None)
+    odometry, backbone = setup.odometry, setup.backbone
     times, ms, feature_ms, late_compiles = seq.times, [], [], 0
 
     def fetch(i: int):
@@ -128,8 +116,8 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
         "wall_ms_per_frame": float(np.mean(frame_ms)),
         "frame_ms": frame_summary(frame_ms),
         "queries_per_frame": float(np.mean([s.queries for s in odometry.status[1:]])),
-        "model_choice": choice.record,
-        "map": map_record,
+        "model_choice": setup.choice.record,
+        "map": setup.map,
     }
     if feature_ms:
         extra["median_ms_features"] = float(np.median(feature_ms))

@@ -115,7 +115,7 @@ def test_default_picks_the_shipped_hdl64_model_for_real_kitti_scans(real):
 def test_default_picks_a_model_per_sensor(signature, picked, monkeypatch):
     import gloam_jax.guard as guard
 
-    monkeypatch.setattr(guard, "measure", lambda scans: signature)
+    monkeypatch.setattr(guard, "try_measure", lambda scans: signature)
     choice = choose(load_config("gloam"), [np.zeros((10, 4))], _stub_features)
     assert choice.record["model"] == picked
     assert choice.config.method == ("gloam" if picked else "gicp")
