@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import ClassVar, Literal
 
 import numpy as np
@@ -30,7 +31,14 @@ from gloam_jax.learned import METHODS, without_gicp_constants
 from gloam_jax.local_map import LocalMap
 from gloam_jax.models import GLOAMModel, learned_parts, load_model
 from gloam_jax.neighbors import KdTree
-from gloam_jax.preprocess import PreprocessConfig, VoxelCentres, deskew_centres, voxel_centres
+from gloam_jax.preprocess import (
+    GridFeatures,
+    PreprocessConfig,
+    VoxelCentres,
+    deskew_centres,
+    on_grid,
+    voxel_centres,
+)
 from gloam_jax.registration import PreparedCloud, align_prepared, build_cloud
 from gloam_jax.sensor import SensorSignature, try_measure
 from gloam_jax.timing import StageTimer
@@ -168,7 +176,8 @@ class Odometry:
         self, config: OdometryConfig = OdometryConfig(), model: GLOAMModel | None = None
     ) -> None:
         """``model`` (default: loaded from ``config.model``) holds the learned parts that
-        ``config.method`` uses; those methods then need per-point features in register_frame."""
+        ``config.method`` uses; those methods then need per-point features in register_frame,
+        unless the model's backbone runs on the voxel grid (:attr:`grid_backbone`)."""
         if model is None and config.model is not None:
             model = load_model(config.model)
         self.model = model
@@ -209,24 +218,35 @@ class Odometry:
         step = geo.se3_exp_jit(self._velocity(frame_dt))
         return self.poses[-1] @ np.asarray(step, dtype=np.float64)
 
+    @cached_property
+    def grid_backbone(self) -> GridFeatures | None:
+        """The model's backbone where it runs on the preprocessing's own voxel grid (the
+        features then come with :meth:`voxel_centres`, none need be given), else None."""
+        if not self.needs_features:
+            return None
+        return on_grid(self.model.backbone(), self.config.preprocess)
+
     def voxel_centres(
         self,
         scan: np.ndarray,
         times: np.ndarray | None = None,
         source: str | None = None,
         features: np.ndarray | None = None,
+        timer: StageTimer | None = None,
     ) -> VoxelCentres:
         """A frame's preprocessing up to the deskew (:func:`gloam_jax.preprocess.voxel_centres`
         with this odometry's settings and PCA), which needs no pose: run it ahead of
         :meth:`register_frame` (``gloam run`` does, on its prefetch thread) and pass the result
-        as the scan. Raises InputError for a scan it cannot prepare."""
+        as the scan. Without ``features``, a learned method's come from :attr:`grid_backbone`
+        (stage ``features`` of ``timer``). Raises InputError for a scan it cannot prepare."""
         self._check_features(features, source)
         pca = self.model.pca if self.needs_features else None
+        backbone = self.grid_backbone if features is None else None
         return voxel_centres(scan, times, self.config.preprocess, pca=pca, features=features,
-                             source=source)  # fmt: skip
+                             backbone=backbone, source=source, timer=timer)  # fmt: skip
 
     def _check_features(self, features: np.ndarray | None, source: str | None) -> None:
-        if self.needs_features and features is None:
+        if self.needs_features and features is None and self.grid_backbone is None:
             raise InputError(source, f"method '{self.config.method}' needs per-point features")
 
     def register_frame(
@@ -239,7 +259,8 @@ class Odometry:
     ) -> np.ndarray:
         """Estimate the pose of ``scan`` (N, 3+), with optional per-point times (N,) in seconds
         from its reference time; ``frame_dt`` is the time since the previous frame;
-        ``features`` (N, D): the backbone's, for the learned methods. ``scan`` may also be
+        ``features`` (N, D): the backbone's, for the learned methods (not needed where
+        :attr:`grid_backbone` makes them). ``scan`` may also be
         its :meth:`voxel_centres`, prepared ahead (``times`` and ``features`` then unused).
         Returns ``T_world_lidar`` (4, 4). Bad scans fall back on the motion prior; so does
         ``scan`` None, a scan that could not be read (``source`` then says why)."""
@@ -380,8 +401,10 @@ class Odometry:
             if prepared:
                 centres = scan
             else:
+                inner = StageTimer()
                 with timer("voxels"):
-                    centres = self.voxel_centres(scan, times, source, features)
+                    centres = self.voxel_centres(scan, times, source, features, inner)
+                timer.split("voxels", inner.ms)
             if velocity is None and self.poses:
                 velocity = self._velocity(frame_dt)
             with timer("deskew"):

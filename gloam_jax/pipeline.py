@@ -213,7 +213,7 @@ def run_dataset(
                 check_units(scan, config.preprocess, path)
             return scan, point_times if deskew["used"] == "timestamps" else None
 
-        return timed_input(read, backbone, path, i, odometry if placement.ahead else None)
+        return timed_input(read, setup.per_point, path, i, odometry if placement.ahead else None)
 
     placement = VoxelPlacement()
     start = len(odometry.poses)
@@ -276,24 +276,24 @@ def timed_input(
     frame: int,
     odometry: Odometry | None = None,
 ) -> FrameInput:
-    """A frame's scan and point times from ``read()``, its features where ``backbone`` is
-    given (None otherwise), its :meth:`Odometry.voxel_centres` where ``odometry`` is given
-    (None otherwise, or where the scan cannot be prepared: registering the raw scan then
-    reports why), and the milliseconds each took (stages ``load``, ``features``, ``voxels``)."""
-    t0 = time.perf_counter()
-    scan, point_times = read()
-    ms = {"load": 1e3 * (time.perf_counter() - t0)}
+    """A frame's scan and point times from ``read()``, its per-point features where
+    ``backbone`` is given (None otherwise), its :meth:`Odometry.voxel_centres` where
+    ``odometry`` is given (with the features of its ``grid_backbone``, if any; None otherwise,
+    or where the scan cannot be prepared: registering the raw scan then reports why), and the
+    milliseconds each took (stages ``load``, ``features``, ``voxels``)."""
+    timer = timing.StageTimer()
+    with timer("load"):
+        scan, point_times = read()
     features = centres = None
     if backbone is not None:
-        t0 = time.perf_counter()
-        features = backbone(scan, path=path, frame=frame)
-        ms["features"] = 1e3 * (time.perf_counter() - t0)
+        with timer("features"):
+            features = backbone(scan, path=path, frame=frame)
     if odometry is not None:
-        t0 = time.perf_counter()
-        with suppress(InputError):
-            centres = odometry.voxel_centres(scan, point_times, str(path), features)
-        ms["voxels"] = 1e3 * (time.perf_counter() - t0)
-    return scan, point_times, features, centres, ms
+        inner = timing.StageTimer()  # features on the voxel grid (Odometry.grid_backbone)
+        with timer("voxels"), suppress(InputError):
+            centres = odometry.voxel_centres(scan, point_times, str(path), features, inner)
+        timer.split("voxels", inner.ms)
+    return scan, point_times, features, centres, timer.ms
 
 
 class VoxelPlacement:
@@ -495,12 +495,14 @@ class RunSetup:
     """What a run's first scans decide: the odometry (its model, or the guard's variant, and
     its map resolution), the learned method's feature source (None otherwise), the model
     choice (``choice.record``: metrics.json's ``model_choice``) and the map's record (``map``:
-    the setting, the resolution, why)."""
+    the setting, the resolution, why); ``per_point``: the backbone to call on each raw scan,
+    None where the odometry makes the features on its voxel grid (``grid_backbone``)."""
 
     odometry: Odometry
     backbone: Backbone | None
     choice: Choice
     map: dict
+    per_point: Backbone | None
 
 
 def open_odometry(
@@ -521,7 +523,9 @@ def open_odometry(
     choice = choose(config, scans, features)
     settings, map_record = plan_map(choice, scans)
     odometry = Odometry(settings, choice.model)
-    return RunSetup(odometry, _backbone(odometry, features_dir), choice, map_record)
+    backbone = _backbone(odometry, features_dir)
+    on_grid = features_dir is None and odometry.grid_backbone is not None
+    return RunSetup(odometry, backbone, choice, map_record, None if on_grid else backbone)
 
 
 def plan_map(choice: Choice, scans: list[np.ndarray]) -> tuple[OdometryConfig, dict]:

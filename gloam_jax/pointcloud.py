@@ -8,6 +8,7 @@ of distinct shapes, and so of compilations, small.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
@@ -112,12 +113,39 @@ def _voxel_groups(
     return order, starts, counts
 
 
+@dataclass(frozen=True)
+class VoxelGrid:
+    """Points grouped by voxel (:func:`voxel_grid`), voxels in sorted key order: ``order``
+    (N,) sorts the points by voxel, ``starts`` (M,) is where each voxel's run begins in it,
+    ``counts`` (M,) its points."""
+
+    order: np.ndarray
+    starts: np.ndarray
+    counts: np.ndarray
+
+    @property
+    def inverse(self) -> np.ndarray:
+        """Each point's voxel (N,) int64."""
+        inverse = np.empty(len(self.order), np.int64)
+        inverse[self.order] = np.repeat(np.arange(len(self.counts)), self.counts)
+        return inverse
+
+    def means(self, a: np.ndarray) -> np.ndarray:
+        """Per-voxel means (M, ...) of a row-aligned array (N, ...), in its dtype."""
+        # np.take gathers rows several times faster than a[order] (same values).
+        sums = np.add.reduceat(np.take(a, self.order, axis=0), self.starts, axis=0)
+        return (sums / self.counts.reshape(-1, *([1] * (a.ndim - 1)))).astype(a.dtype)
+
+
+def voxel_grid(points: np.ndarray, voxel_size: float) -> VoxelGrid:
+    """The voxels of ``voxel_size`` metres (> 0) that ``points`` (N >= 1, 3+) fall in."""
+    return VoxelGrid(*_voxel_groups(points, voxel_size))
+
+
 def voxel_index(points: np.ndarray, voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
     """Each point's voxel (N,) and the points per voxel (M,), voxels in sorted key order."""
-    order, _, counts = _voxel_groups(points, voxel_size)
-    inverse = np.empty(len(order), np.int64)
-    inverse[order] = np.repeat(np.arange(len(counts)), counts)
-    return inverse, counts
+    grid = voxel_grid(points, voxel_size)
+    return grid.inverse, grid.counts
 
 
 def voxel_means(
@@ -128,13 +156,8 @@ def voxel_means(
     A size of 0 (no downsampling) or no points returns the arrays as they are."""
     if voxel_size <= 0 or len(points) == 0:
         return list(columns)
-    order, starts, counts = _voxel_groups(points, voxel_size)
-    out = []
-    for a in columns:
-        # np.take gathers rows several times faster than a[order] (same values).
-        sums = np.add.reduceat(np.take(a, order, axis=0), starts, axis=0)
-        out.append((sums / counts.reshape(-1, *([1] * (a.ndim - 1)))).astype(a.dtype))
-    return out
+    grid = voxel_grid(points, voxel_size)
+    return [grid.means(a) for a in columns]
 
 
 # Bits per axis of a voxel key (voxel_keys): cells within 2**20 of the origin each way.

@@ -23,8 +23,9 @@ camera triggers); the velocity is the se(3) motion per frame interval, in
 from __future__ import annotations
 
 import math
+from contextlib import nullcontext
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, ClassVar, Literal, get_args
+from typing import TYPE_CHECKING, ClassVar, Literal, Protocol, get_args
 
 import jax
 import jax.numpy as jnp
@@ -36,6 +37,29 @@ from gloam_jax.errors import InputError
 
 if TYPE_CHECKING:
     from gloam_jax.features.pca import FeaturePCA
+    from gloam_jax.timing import StageTimer
+
+
+class GridFeatures(Protocol):
+    """A backbone whose features are per voxel of the preprocessing's own grid
+    (:meth:`gloam_jax.features.GeometricBackbone.voxel_features`)."""
+
+    def shares_grid(self, resolution: float, min_range: float, max_range: float) -> bool: ...
+
+    def voxel_features(
+        self, xyz: np.ndarray, intensity: np.ndarray | None, grid: pc.VoxelGrid
+    ) -> np.ndarray: ...
+
+
+def on_grid(backbone: object, config: PreprocessConfig) -> GridFeatures | None:
+    """``backbone`` where its features can come from ``config``'s own voxel grid (the same
+    voxels and range band: :func:`voxel_centres` then needs no per-point features), else
+    None."""
+    shares = getattr(backbone, "shares_grid", None)
+    if shares is None or config.downsampling_resolution <= 0:
+        return None
+    ok = shares(config.downsampling_resolution, config.min_range, config.max_range)
+    return backbone if ok else None  # type: ignore[return-value]
 
 
 DeskewPolicy = Literal["auto", "timestamps", "azimuth", "off"]
@@ -290,10 +314,14 @@ def voxel_centres(
     *,
     pca: FeaturePCA | None = None,
     features: np.ndarray | None = None,
+    backbone: GridFeatures | None = None,
     source: str | None = None,
+    timer: StageTimer | None = None,
 ) -> VoxelCentres:
     """One raw scan (N, 3+) -> its voxel centres before the deskew (:func:`preprocess_scan`
-    has the arguments)."""
+    has the arguments). With ``pca``, the centres' features come either from ``features``
+    (N, D), averaged per voxel, or from ``backbone`` on this grid (the same values: the
+    backbone must share the grid, ``shares_grid``), timed as stage ``features`` of ``timer``."""
     keep, dropped = pc.range_mask(scan, config.min_range, config.max_range, source)
     # np.compress: the rows of scan[keep, :3], selected faster than a boolean index does.
     points = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
@@ -313,7 +341,10 @@ def voxel_centres(
     else:
         t = np.zeros(len(points))
     columns = [np.column_stack([points, t])]
-    if pca is not None:
+    on_grid = pca is not None and backbone is not None
+    if on_grid and config.downsampling_resolution <= 0:
+        raise ValueError("features on the preprocessing's grid need downsampling_resolution > 0")
+    if pca is not None and not on_grid:
         if features is None or len(features) != len(scan):
             rows = "no" if features is None else len(features)
             raise InputError(source, f"features have {rows} rows but the scan has {len(scan)}")
@@ -327,7 +358,13 @@ def voxel_centres(
         columns.append(np.compress(keep, pca.transform(features), axis=0))
     # Downsample first (a voxel's points share a place, so nearly a time), then deskew the
     # few voxel centres with their mean time; features are averaged per voxel alike.
-    columns = pc.voxel_means(points, config.downsampling_resolution, columns)
+    if config.downsampling_resolution > 0:
+        grid = pc.voxel_grid(points, config.downsampling_resolution)
+        columns = [grid.means(a) for a in columns]
+    if on_grid:
+        with nullcontext() if timer is None else timer("features"):
+            intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
+            columns.append(pca.transform(backbone.voxel_features(points, intensity, grid)))
     reduced = columns[0]
     return VoxelCentres(
         points=reduced[:, :3],
@@ -361,12 +398,14 @@ def preprocess_scan(
     frame_dt: float = 0.1,
     pca: FeaturePCA | None = None,
     features: np.ndarray | None = None,
+    backbone: GridFeatures | None = None,
     buckets: pc.StickyBuckets | None = None,
     source: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None, int]:
     """One raw scan (N, 3+) -> its voxel centres (M, 3) float64, deskewed with ``velocity``
     (se(3) per ``frame_dt``; None: not deskewed), their PCA features (M, 6) when ``pca`` is
-    given (from the backbone's ``features`` (N, D)), and the number of NaN / inf points
+    given (from the backbone's ``features`` (N, D), or from ``backbone`` on the voxel grid,
+    :func:`voxel_centres`), and the number of NaN / inf points
     dropped: :func:`voxel_centres`, then :func:`deskew_centres`.
 
     ``times`` (N,) per-point times in any convention (normalised by :func:`normalise_times`),
@@ -375,6 +414,8 @@ def preprocess_scan(
     size the deskew's padding (role "scan", grown to hold all M centres). Raises InputError
     for scans without points in range and for features of the wrong shape.
     """
-    centres = voxel_centres(scan, times, config, pca=pca, features=features, source=source)
+    centres = voxel_centres(
+        scan, times, config, pca=pca, features=features, backbone=backbone, source=source
+    )
     points = deskew_centres(centres, velocity, frame_dt, buckets)
     return points, centres.features, centres.dropped

@@ -6,7 +6,8 @@ stages, in the order a frame meets them:
 
 * ``load``: reading the scan file and checking it (:mod:`gloam_jax.pipeline`'s prefetch
   thread, while the frame before registers);
-* ``features``: the backbone's per-point features, for the learned methods (the same thread);
+* ``features``: the backbone's features, for the learned methods (the same thread; on the
+  voxel grid, within ``voxels``, for a backbone that shares it);
 * ``voxels``: cleaning, cropping, per-point times and the voxel grid (the same thread when the
   caller prepares the frame ahead, as ``gloam run`` does; else the registration's);
 * ``deskew``: the voxel centres moved to the scan's reference time with the current velocity;
@@ -65,6 +66,13 @@ class StageTimer:
         frame: :func:`gloam_jax.pipeline.timed_input`)."""
         for stage, stage_ms in ms.items():
             self.elsewhere[stage] = self.elsewhere.get(stage, 0.0) + stage_ms
+
+    def split(self, stage: str, inner: dict[str, float]) -> None:
+        """Move the milliseconds of ``inner``'s stages, timed within ``stage``, out of it
+        into their own (the backbone's features on the voxel grid, inside ``voxels``)."""
+        for name, ms in inner.items():
+            self.ms[stage] = max(self.ms.get(stage, 0.0) - ms, 0.0)
+            self.ms[name] = self.ms.get(name, 0.0) + ms
 
     def begin(self) -> None:
         """The registration starts: what was timed so far (the caller's loading) lies

@@ -73,7 +73,7 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
     if weights is not None:
         config = dataclasses.replace(config, model=str(weights))
     setup = open_odometry(open_dataset(seq.root, seq.sequence), config, range(n), None)
-    odometry, backbone = setup.odometry, setup.backbone
+    odometry = setup.odometry
     times, ms, feature_ms, late_compiles = seq.times, [], [], 0
 
     def fetch(i: int):
@@ -81,7 +81,7 @@ def run_ours(seq: io.KittiSequence, n: int, config, weights: Path | None, counte
             return seq.scan(i), seq.point_times(i)
 
         return timed_input(
-            read, backbone, seq.scan_path(i), i, odometry if placement.ahead else None
+            read, setup.per_point, seq.scan_path(i), i, odometry if placement.ahead else None
         )
 
     placement = VoxelPlacement()

@@ -266,3 +266,34 @@ def test_a_scan_in_other_intensity_units_is_flagged(scan_features, tmp_path):
     assert result.exit_code == 0, result.output
     assert result.output.count("warning: the scans' mean intensity") == 1
     assert result.output.count("warning: model") == 1 and "forced" in result.output
+
+
+def test_features_on_the_preprocessings_grid_are_the_per_point_path():
+    """A backbone with the preprocessing's voxels and range band gives each voxel centre the
+    mean of its points' features without a row per point: the same centres and PCA features
+    as averaging backbone(scan) (real KITTI scan); other settings do not share the grid."""
+    from shared_data import shared_path
+
+    from gloam_jax.preprocess import PreprocessConfig, on_grid, voxel_centres
+    from gloam_jax.timing import StageTimer
+
+    scan = np.fromfile(shared_path("real_kitti16/000003.bin"), np.float32).reshape(-1, 4)
+    config = PreprocessConfig()  # 0.5 m voxels over 3-100 m
+    bb = GeometricBackbone(voxel_size=0.5, scales=[10], min_range=3.0, max_range=100.0)
+    assert on_grid(bb, config) is bb
+    for other in (GeometricBackbone(), GeometricBackbone(voxel_size=0.5, scales=[10])):
+        assert on_grid(other, config) is None
+    per_point = bb(scan)
+    r = np.linalg.norm(scan[:, :3].astype(np.float64), axis=1)
+    assert not per_point[(r < 3) | (r > 100)].any() and per_point[(r > 3) & (r < 100)].any()
+    pca = fit_pca(per_point[r > 3], 6)
+    slow = voxel_centres(scan, None, config, pca=pca, features=per_point)
+    timer = StageTimer()
+    fast = voxel_centres(scan, None, config, pca=pca, backbone=bb, timer=timer)
+    np.testing.assert_array_equal(fast.points, slow.points)
+    np.testing.assert_array_equal(fast.times, slow.times)
+    assert fast.features.shape == slow.features.shape == (len(slow.points), 6)
+    np.testing.assert_allclose(fast.features, slow.features, atol=2e-5)
+    assert timer.ms["features"] > 0
+    with pytest.raises(InputError, match="min_range < max_range"):
+        GeometricBackbone(min_range=5.0, max_range=3.0)

@@ -158,6 +158,31 @@ def test_learned_methods_track_a_simulated_drive(sim_sequence, model, method):
     assert np.linalg.norm(drift[:3, 3]) < 0.5
 
 
+def test_a_model_on_the_voxel_grid_registers_raw_scans_as_with_per_point_features(
+    sim_sequence,
+):
+    """A backbone with the preprocessing's voxels and range band makes the features with the
+    voxel centres (Odometry.grid_backbone): register_frame needs none, the poses are those of
+    per-point features, and the frame's features stage is timed apart from its voxels."""
+    seq = io.KittiSequence(sim_sequence, "00")
+    backbone = get_backbone("geometric", voxel_size=0.5, scales=[10], min_range=3.0,
+                            max_range=100.0)  # fmt: skip
+    pca = fit_pca([backbone(seq.scan(i)) for i in (0, 20)])
+    model = init_model(jax.random.PRNGKey(1), pca, backbone_options=backbone.options())
+    config = OdometryConfig(method="gloam", gicp=GICPConfig(num_candidates=5))
+    grid, per_point = Odometry(config, model), Odometry(config, model)
+    assert grid.grid_backbone is not None
+    for i in range(5):
+        scan, times = seq.scan(i), seq.point_times(i)
+        grid.register_frame(scan, times, 0.1)
+        per_point.register_frame(scan, times, 0.1, features=backbone(scan))
+    assert not any(s.error for s in grid.status)
+    np.testing.assert_allclose(np.stack(grid.poses), np.stack(per_point.poses), atol=1e-5)
+    stages = grid.status[-1].stage_ms
+    assert stages["features"] > 0 and stages["voxels"] > 0
+    assert per_point.status[-1].stage_ms["features"] == 0
+
+
 def test_learned_methods_need_a_model_and_features(sim_sequence, model):
     with pytest.raises(InputError, match="method 'gloam' needs a model file"):
         Odometry(OdometryConfig(method="gloam"))

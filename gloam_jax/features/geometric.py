@@ -20,6 +20,12 @@ Two of them describe the sensor as much as the scene: point density follows the 
 and height above the ground how far up a sensor looks (a VLP-16 sees facades at 10 m, an
 HDL-64 rarely above 4 m). ``max_height`` and ``drop`` (feature names left out) make features
 that a sensor missing from training shifts less (experiments/invariant_features).
+
+``min_range`` and ``max_range`` keep only points in that band (the others get zero rows).
+With the preprocessing's voxel size and band the backbone shares its grid
+(:meth:`GeometricBackbone.shares_grid`): :meth:`GeometricBackbone.voxel_features` then gives
+each voxel centre the mean of its points' rows directly, without a second grid or a row per
+point (``Odometry.grid_backbone``; experiments/grid_features).
 """
 
 from __future__ import annotations
@@ -60,13 +66,6 @@ _DENSITY_DECADES = 3.0  # log10(points / m^3) spans about -1..4
 # Added to every eigenvalue (m^2, a 10 um spread): a neighbourhood of identical points
 # reads as isotropic instead of dividing zero by zero.
 _EIGEN_FLOOR = 1e-10
-
-
-def _voxelize(xyz: np.ndarray, size: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Voxel means (M, 3) float64, each point's voxel (N,) and points per voxel (M,)."""
-    inverse, counts = pc.voxel_index(xyz, size)
-    sums = [np.bincount(inverse, weights=col, minlength=len(counts)) for col in xyz.T]
-    return np.stack(sums, axis=1) / counts[:, None], inverse, counts
 
 
 def _eigenvalues(c: np.ndarray) -> np.ndarray:
@@ -162,6 +161,8 @@ class GeometricBackbone:
         intensity_scale: float = 1.0,
         max_height: float = 20.0,
         drop: tuple[str, ...] | list[str] = (),
+        min_range: float = 0.0,
+        max_range: float | None = None,
     ) -> None:
         scales = tuple(int(k) for k in scales)
         if voxel_size <= 0 or not scales or min(scales) < 3 or list(scales) != sorted(set(scales)):
@@ -183,6 +184,14 @@ class GeometricBackbone:
                 f"({', '.join(self._all_names)}), got max_height={max_height}, drop={list(drop)}",
             )
         self._keep = [i for i, n in enumerate(self._all_names) if n not in self.drop]
+        self.min_range = float(min_range)
+        self.max_range = None if max_range is None else float(max_range)
+        if not 0 <= self.min_range < (np.inf if self.max_range is None else self.max_range):
+            raise InputError(
+                None,
+                f"geometric backbone: need 0 <= min_range < max_range, got "
+                f"min_range={min_range}, max_range={max_range}",
+            )
 
     @property
     def _all_names(self) -> tuple[str, ...]:
@@ -212,7 +221,18 @@ class GeometricBackbone:
             "intensity_scale": self.intensity_scale,
             "max_height": self.max_height,
             "drop": list(self.drop),
+            "min_range": self.min_range,
+            "max_range": self.max_range,
         }
+
+    def shares_grid(self, resolution: float, min_range: float, max_range: float) -> bool:
+        """Whether this backbone's voxels are those of a preprocessing at ``resolution`` m
+        over [``min_range``, ``max_range``] m, so :meth:`voxel_features` can run on its grid."""
+        return (self.voxel_size, self.min_range, self.max_range) == (
+            resolution,
+            min_range,
+            max_range,
+        )
 
     def __call__(
         self,
@@ -221,14 +241,56 @@ class GeometricBackbone:
         path: str | os.PathLike[str] | None = None,
         frame: int | None = None,
     ) -> np.ndarray:
-        """Features (N, D) float32 of a raw scan (N, 3+) ``x y z [intensity]``."""
+        """Features (N, D) float32 of a raw scan (N, 3+) ``x y z [intensity]``; zeros for
+        points outside [min_range, max_range] or not finite."""
         scan = pc.check_points(scan, path)
-        finite = np.all(np.isfinite(scan[:, :3]), axis=1)
-        if not finite.any():
+        try:
+            top = np.inf if self.max_range is None else self.max_range
+            keep = pc.range_mask(scan, self.min_range, top, path)[0]
+        except InputError:  # no valid point: all rows zero
+            keep = np.zeros(len(scan), bool)
+        if not keep.any():
             return np.zeros((len(scan), self.dim), np.float32)
-        xyz = scan[finite, :3].astype(np.float64)
-        voxels, inverse, counts = _voxelize(xyz, self.voxel_size)
+        xyz = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
+        intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
+        grid = pc.voxel_grid(xyz, self.voxel_size)
+        voxels = grid.means(xyz)
+        # np.take: the same rows as per_voxel[inverse], gathered four times faster.
+        features = np.concatenate(
+            [
+                np.take(self._per_voxel(voxels, grid.counts), grid.inverse, axis=0),
+                self._per_point(xyz, intensity, voxels),
+            ],
+            axis=1,
+        )
+        if self.drop:
+            features = features[:, self._keep]
+        if len(features) == len(scan):
+            return features
+        out = np.zeros((len(scan), self.dim), np.float32)
+        out[keep] = features
+        return out
 
+    def voxel_features(
+        self, xyz: np.ndarray, intensity: np.ndarray | None, grid: pc.VoxelGrid
+    ) -> np.ndarray:
+        """The mean of :meth:`__call__`'s rows over each voxel of ``grid`` (M, D) float32,
+        from the points (N, 3) float64 and intensities (N,) or None within the range: the
+        same values without a second voxel grid or a row per point, where ``grid`` has this
+        backbone's voxels (:meth:`shares_grid`)."""
+        voxels = grid.means(xyz)
+        features = np.concatenate(
+            [
+                self._per_voxel(voxels, grid.counts),
+                grid.means(self._per_point(xyz, intensity, voxels)),
+            ],
+            axis=1,
+        )
+        return features[:, self._keep] if self.drop else features
+
+    def _per_voxel(self, voxels: np.ndarray, counts: np.ndarray) -> np.ndarray:
+        """Eigenvalue descriptors at every scale and the density (M, 8 * scales + 1) float32
+        of voxel means (M, 3) float64 holding ``counts`` (M,) points."""
         k_max = min(self.scales[-1], len(voxels))
         dist, idx = KdTree(voxels).nearest(voxels, k_max)
         # Neighbourhood sums of first and second moments as sparse (M, M) selection matrices
@@ -236,7 +298,7 @@ class GeometricBackbone:
         moments = np.concatenate(
             [voxels, voxels[:, [0, 1, 2, 0, 0, 1]] * voxels[:, [0, 1, 2, 1, 2, 2]]], axis=1
         )
-        voxel_features = []
+        columns = []
         for k in self.scales:
             k = min(k, k_max)
             select = sparse.csr_matrix(
@@ -247,25 +309,22 @@ class GeometricBackbone:
                 ),
                 shape=(len(voxels), len(voxels)),
             )
-            voxel_features.append(_eigen_features(select @ moments, k))
-
+            columns.append(_eigen_features(select @ moments, k))
         radius = np.maximum(dist[:, -1], self.voxel_size / 2)
         density = counts[idx].sum(axis=1) / (4 / 3 * np.pi * radius**3)
-        voxel_features.append(np.log10(density)[:, None] / _DENSITY_DECADES)
-        per_voxel = np.concatenate(voxel_features, axis=1).astype(np.float32)
+        columns.append(np.log10(density)[:, None] / _DENSITY_DECADES)
+        return np.concatenate(columns, axis=1).astype(np.float32)
 
+    def _per_point(
+        self, xyz: np.ndarray, intensity: np.ndarray | None, voxels: np.ndarray
+    ) -> np.ndarray:
+        """Height, range and intensity (N, 3) float32 of points (N, 3) among ``voxels``."""
         height = np.clip(xyz[:, 2] - _ground(voxels, xyz), _MIN_HEIGHT, self.max_height)
-        intensity = scan[finite, 3] * self.intensity_scale if scan.shape[1] > 3 else 0.0
-        per_point = np.zeros((len(xyz), 3), np.float32)
-        per_point[:, 0] = height / _HEIGHT_SCALE
-        per_point[:, 1] = np.linalg.norm(xyz, axis=1) / _RANGE_SCALE
-        per_point[:, 2] = np.nan_to_num(intensity, nan=0.0, posinf=0.0, neginf=0.0)
-        # np.take: the same rows as per_voxel[inverse], gathered four times faster.
-        features = np.concatenate([np.take(per_voxel, inverse, axis=0), per_point], axis=1)
-        if self.drop:
-            features = features[:, self._keep]
-        if len(features) == len(scan):
-            return features
-        out = np.zeros((len(scan), self.dim), np.float32)
-        out[finite] = features
+        out = np.zeros((len(xyz), 3), np.float32)
+        out[:, 0] = height / _HEIGHT_SCALE
+        out[:, 1] = np.linalg.norm(xyz, axis=1) / _RANGE_SCALE
+        if intensity is not None:
+            out[:, 2] = np.nan_to_num(
+                intensity * self.intensity_scale, nan=0.0, posinf=0.0, neginf=0.0
+            )
         return out

@@ -31,7 +31,7 @@ from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone
 from gloam_jax.features.pca import FeaturePCA
 from gloam_jax.neighbors import KdTree
-from gloam_jax.preprocess import PreprocessConfig, preprocess_scan
+from gloam_jax.preprocess import PreprocessConfig, on_grid, preprocess_scan
 from gloam_jax.training.batch import BatchConfig, BatchData, PairBatch, ScanSet, Window
 from gloam_jax.training.losses import scaled_lengths, segment_plan
 
@@ -87,7 +87,10 @@ def _knn_eigen(points: jax.Array, neighbours: jax.Array) -> tuple[jax.Array, jax
 def _prepare_scan(seq, i, config, pca, backbone, velocity, frame_dt) -> PreparedScan:
     scan = seq.scan(i)
     path = str(seq.scan_path(i))
-    features = None if pca is None else backbone(scan, path=path, frame=i)
+    grid_backbone = None if pca is None else on_grid(backbone, config)
+    features = None
+    if pca is not None and grid_backbone is None:
+        features = backbone(scan, path=path, frame=i)
     points, pca_features, _ = preprocess_scan(
         scan,
         seq.point_times(i),
@@ -96,6 +99,7 @@ def _prepare_scan(seq, i, config, pca, backbone, velocity, frame_dt) -> Prepared
         frame_dt=frame_dt,
         pca=pca,
         features=features,
+        backbone=grid_backbone,
         source=path,
     )
     neighbours, _ = KdTree(points, path).query(points, config.num_neighbors)
