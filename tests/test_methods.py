@@ -159,11 +159,12 @@ def test_learned_methods_track_a_simulated_drive(sim_sequence, model, method):
 
 
 def test_a_model_on_the_voxel_grid_registers_raw_scans_as_with_per_point_features(
-    sim_sequence,
+    sim_sequence, tmp_path
 ):
     """A backbone with the preprocessing's voxels and range band makes the features with the
     voxel centres (Odometry.grid_backbone): register_frame needs none, the poses are those of
-    per-point features, and the frame's features stage is timed apart from its voxels."""
+    per-point features, the frame's features stage is timed apart from its voxels, and
+    model-info says where the features are made."""
     seq = io.KittiSequence(sim_sequence, "00")
     backbone = get_backbone("geometric", voxel_size=0.5, scales=[10], min_range=3.0,
                             max_range=100.0)  # fmt: skip
@@ -181,6 +182,11 @@ def test_a_model_on_the_voxel_grid_registers_raw_scans_as_with_per_point_feature
     stages = grid.status[-1].stage_ms
     assert stages["features"] > 0 and stages["voxels"] > 0
     assert per_point.status[-1].stage_ms["features"] == 0
+    save_model(tmp_path / "grid.npz", model)
+    for file, on_grid in ((tmp_path / "grid.npz", True), (None, False)):
+        shown = CliRunner().invoke(app, ["model-info"] + ([str(file)] if file else []))
+        assert shown.exit_code == 0
+        assert ("features: made on the odometry's voxel grid" in shown.output) == on_grid
 
 
 def test_learned_methods_need_a_model_and_features(sim_sequence, model):

@@ -102,6 +102,7 @@ def model_info(
 
     from gloam_jax.metrics import format_spread
     from gloam_jax.models import load_model
+    from gloam_jax.preprocess import PreprocessConfig, on_grid
 
     def say(line: str) -> None:  # one line each, however narrow the terminal: easy to grep
         console.print(line, soft_wrap=True, markup=False, highlight=False)
@@ -121,6 +122,9 @@ def model_info(
         f"{100 * float(sum(m.pca.explained_variance_ratio)):.1f} % of the variance, eps {m.eps:g}"
         + ("" if m.max_thickness is None else f", max_thickness {m.max_thickness:g}")
     )
+    if m.backbone_name == "geometric" and on_grid(m.backbone(), PreprocessConfig()) is not None:
+        say("features: made on the odometry's voxel grid (the default preprocessing's voxels "
+            "and range band), not per raw point")  # fmt: skip
     if m.sensors is None:
         say("sensors: not recorded (an older file: gloam run runs it when named, with a warning)")
     for s in m.sensors or ():
