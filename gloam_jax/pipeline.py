@@ -492,11 +492,10 @@ def save_progress(files: RunFiles, odometry: Odometry, config: OdometryConfig, r
 
 @dataclass(frozen=True)
 class RunSetup:
-    """What a run's first scans decide: the odometry (its model, or the guard's variant, and
-    its map resolution), the learned method's feature source (None otherwise), the model
-    choice (``choice.record``: metrics.json's ``model_choice``) and the map's record (``map``:
-    the setting, the resolution, why); ``per_point``: the backbone to call on each raw scan,
-    None where the odometry makes the features on its voxel grid (``grid_backbone``)."""
+    """What a run's first scans decide: the odometry (its model or the guard's variant, its map
+    resolution), the learned method's feature source, the one to call per raw scan (both None
+    where not needed: ``per_point`` where the odometry's ``grid_backbone`` makes them), the
+    model choice (``choice.record``: metrics.json's ``model_choice``) and the map's record."""
 
     odometry: Odometry
     backbone: Backbone | None

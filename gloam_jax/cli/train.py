@@ -100,6 +100,7 @@ def model_info(
     """How a model file was made: backbone, training, selection and every test score."""
     import json
 
+    from gloam_jax.features import get_backbone
     from gloam_jax.metrics import format_spread
     from gloam_jax.models import load_model
     from gloam_jax.preprocess import PreprocessConfig, on_grid
@@ -122,7 +123,9 @@ def model_info(
         f"{100 * float(sum(m.pca.explained_variance_ratio)):.1f} % of the variance, eps {m.eps:g}"
         + ("" if m.max_thickness is None else f", max_thickness {m.max_thickness:g}")
     )
-    if m.backbone_name == "geometric" and on_grid(m.backbone(), PreprocessConfig()) is not None:
+    # built without backbone()'s check of its width against the PCA's: model-info shows both
+    geometric = m.backbone_name == "geometric" and get_backbone("geometric", **m.backbone_options)
+    if geometric and on_grid(geometric, PreprocessConfig()) is not None:
         say("features: made on the odometry's voxel grid (the default preprocessing's voxels "
             "and range band), not per raw point")  # fmt: skip
     if m.sensors is None:
