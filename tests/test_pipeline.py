@@ -271,10 +271,14 @@ def test_a_run_records_each_frames_stages_and_their_median_and_p95(sim_sequence,
     assert len(stage_ms) == 6 and all(tuple(ms) == STAGES for ms in stage_ms)
     assert all(ms["load"] > 0 and ms["voxels"] > 0 and min(ms.values()) >= 0 for ms in stage_ms)
     assert all(ms["solve"] > 0 and ms["neighbours"] > 0 for ms in stage_ms[1:])
-    # the stages inside registration add up to its time (frames 0, 1 redone within frame 1's)
+    # the stages inside registration add up to its time (frames 0, 1 redone within frame 1's),
+    # and its voxel grid where the registration built it (the prefetch thread was the busier
+    # when the grid was due: pipeline.VoxelPlacement, decided while the frames run)
     registration = [sum(v for k, v in ms.items() if k not in ("load", "features", "voxels"))
                     for ms in stage_ms]  # fmt: skip
-    assert result["first_frames_ms"] == pytest.approx(registration[:3], abs=0.5)
+    first = zip(result["first_frames_ms"], registration[:3], stage_ms[:3], strict=True)
+    for frame_ms, inside, ms in first:
+        assert inside - 0.5 <= frame_ms <= inside + ms["voxels"] + 0.5
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     assert metrics["stage_ms"] == result["stage_ms"]
     for stage in STAGES:
