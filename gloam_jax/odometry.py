@@ -16,6 +16,7 @@ the times) is predicted over its whole gap.
 from __future__ import annotations
 
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import ClassVar, Literal
@@ -237,13 +238,20 @@ class Odometry:
         """A frame's preprocessing up to the deskew (:func:`gloam_jax.preprocess.voxel_centres`
         with this odometry's settings and PCA), which needs no pose: run it ahead of
         :meth:`register_frame` (``gloam run`` does, on its prefetch thread) and pass the result
-        as the scan. Without ``features``, a learned method's come from :attr:`grid_backbone`
-        (stage ``features`` of ``timer``). Raises InputError for a scan it cannot prepare."""
+        as the scan. Without ``features``, a learned method's come from :attr:`grid_backbone`.
+        ``timer`` gets stages ``voxels`` and ``features`` (the latter within the former, moved
+        out). Raises InputError for a scan it cannot prepare."""
         self._check_features(features, source)
         pca = self.model.pca if self.needs_features else None
         backbone = self.grid_backbone if features is None else None
-        return voxel_centres(scan, times, self.config.preprocess, pca=pca, features=features,
-                             backbone=backbone, source=source, timer=timer)  # fmt: skip
+        inner = StageTimer()
+        with nullcontext() if timer is None else timer("voxels"):
+            centres = voxel_centres(scan, times, self.config.preprocess, pca=pca,
+                                    features=features, backbone=backbone, source=source,
+                                    timer=inner)  # fmt: skip
+        if timer is not None:
+            timer.split("voxels", inner.ms)
+        return centres
 
     def _check_features(self, features: np.ndarray | None, source: str | None) -> None:
         if self.needs_features and features is None and self.grid_backbone is None:
@@ -401,10 +409,7 @@ class Odometry:
             if prepared:
                 centres = scan
             else:
-                inner = StageTimer()
-                with timer("voxels"):
-                    centres = self.voxel_centres(scan, times, source, features, inner)
-                timer.split("voxels", inner.ms)
+                centres = self.voxel_centres(scan, times, source, features, timer)
             if velocity is None and self.poses:
                 velocity = self._velocity(frame_dt)
             with timer("deskew"):

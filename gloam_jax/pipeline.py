@@ -289,10 +289,8 @@ def timed_input(
         with timer("features"):
             features = backbone(scan, path=path, frame=frame)
     if odometry is not None:
-        inner = timing.StageTimer()  # features on the voxel grid (Odometry.grid_backbone)
-        with timer("voxels"), suppress(InputError):
-            centres = odometry.voxel_centres(scan, point_times, str(path), features, inner)
-        timer.split("voxels", inner.ms)
+        with suppress(InputError):
+            centres = odometry.voxel_centres(scan, point_times, str(path), features, timer)
     return scan, point_times, features, centres, timer.ms
 
 

@@ -341,10 +341,10 @@ def voxel_centres(
     else:
         t = np.zeros(len(points))
     columns = [np.column_stack([points, t])]
-    on_grid = pca is not None and backbone is not None
-    if on_grid and config.downsampling_resolution <= 0:
-        raise ValueError("features on the preprocessing's grid need downsampling_resolution > 0")
-    if pca is not None and not on_grid:
+    grid_features = pca is not None and backbone is not None
+    if grid_features and on_grid(backbone, config) is None:
+        raise ValueError("the backbone does not share this preprocessing's voxel grid")
+    if pca is not None and not grid_features:
         if features is None or len(features) != len(scan):
             rows = "no" if features is None else len(features)
             raise InputError(source, f"features have {rows} rows but the scan has {len(scan)}")
@@ -361,7 +361,7 @@ def voxel_centres(
     if config.downsampling_resolution > 0:
         grid = pc.voxel_grid(points, config.downsampling_resolution)
         columns = [grid.means(a) for a in columns]
-    if on_grid:
+    if grid_features:
         with nullcontext() if timer is None else timer("features"):
             intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
             columns.append(pca.transform(backbone.voxel_features(points, intensity, grid)))
