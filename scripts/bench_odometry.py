@@ -19,9 +19,11 @@ scans, in order, with the same number of threads:
 
 Every method's frame time (``frame_ms``: median and p95) is the loop's wall time per frame,
 the scan's reading included (and, for the learned methods, the features); ``--isolate`` runs
-each method in processes of its own and adds the whole process's wall time and peak memory
-(``process_s``, ``peak_mib``): first with an empty JAX compilation cache, then with the cache
-that run filled (the peers compile nothing: one run).
+each method in processes of its own and adds the whole process's wall time, CPU time (user
+and system, all threads) and peak memory (``process_s``, ``cpu_s``, ``peak_mib``): first with
+an empty JAX compilation cache, then with the cache that run filled (the peers compile
+nothing: one run). CPU time over wall time is the cores a method keeps busy: on two cores,
+one near 2 cannot go faster by moving work between its threads.
 
 Prints t_err (%), r_err (deg/100 m) with the KITTI devkit metric in the camera-0 frame, and the
 median milliseconds per frame of registration; for this project's methods also the wall time
@@ -213,7 +215,8 @@ def frame_summary(frame_ms: list[float]) -> dict:
 def isolated(args: argparse.Namespace, name: str, method: str) -> dict:
     """``method`` on sequence ``name`` in processes of its own (this script, one method): first
     with an empty compilation cache, then (this project's methods) with the cache it filled.
-    The cached run's entry, with each run's whole-process wall time (s) and peak memory (MiB)."""
+    The cached run's entry, with each run's whole-process wall time (s), CPU time (s) and peak
+    memory (MiB)."""
     runs: dict[str, dict] = {}
     with tempfile.TemporaryDirectory() as tmp:
         for label in ("first", "cached"):
@@ -232,11 +235,13 @@ def isolated(args: argparse.Namespace, name: str, method: str) -> dict:
             if os.waitstatus_to_exitcode(status) != 0:
                 raise SystemExit(f"{method} on {name}: its process failed ({' '.join(cmd)})")
             entry = json.loads(out.read_text())[f"{name}/{method}"]
-            runs[label] = {"entry": entry, "s": seconds, "mib": usage.ru_maxrss / 1024}
+            cpu = usage.ru_utime + usage.ru_stime
+            runs[label] = {"entry": entry, "s": seconds, "cpu": cpu, "mib": usage.ru_maxrss / 1024}
             if method in PEERS:
                 break  # no compilation cache to fill
     entry = runs.get("cached", runs["first"])["entry"]
     entry["process_s"] = {label: r["s"] for label, r in runs.items()}
+    entry["cpu_s"] = {label: r["cpu"] for label, r in runs.items()}
     entry["peak_mib"] = {label: r["mib"] for label, r in runs.items()}
     return entry
 
@@ -327,11 +332,11 @@ def speed_table(results: dict) -> str:
     """Accuracy and speed per entry: frame time (median / p95 ms, reading and features
     included) and its ratio to small_gicp's median on the same sequence, registration alone
     (median ms), and with ``--isolate`` the whole process (s) and its peak memory (MiB), first
-    run / cached run."""
+    run / cached run, and the cores the last run kept busy (its CPU time over its wall time)."""
     lines = [
         "| sequence | method | t_err (%) | r_err (deg/100 m) | frame ms, median / p95 "
-        "| vs small_gicp | registration ms | process s, first / cached | peak MiB |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| vs small_gicp | registration ms | process s, first / cached | cores | peak MiB |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def pair(values: dict | None, fmt: str) -> str:
@@ -341,10 +346,12 @@ def speed_table(results: dict) -> str:
         name, method = key.split("/")
         frame, peer = r.get("frame_ms"), results.get(f"{name}/small_gicp", {}).get("frame_ms")
         ratio = f"{frame['median'] / peer['median']:.2f}x" if frame and peer else "-"
+        process, cpu = r.get("process_s"), r.get("cpu_s")
+        cores = f"{list(cpu.values())[-1] / list(process.values())[-1]:.2f}" if cpu else "-"
         lines.append(
             f"| {name} | {method} | {r['t_err_percent']:.3f} | {r['r_err_deg_per_100m']:.3f} | "
             f"{pair(frame, '.1f')} | {ratio} | {r['median_ms_per_frame']:.1f} | "
-            f"{pair(r.get('process_s'), '.0f')} | {pair(r.get('peak_mib'), '.0f')} |"
+            f"{pair(process, '.0f')} | {cores} | {pair(r.get('peak_mib'), '.0f')} |"
         )
     return "\n".join(lines)
 

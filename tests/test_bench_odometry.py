@@ -64,8 +64,10 @@ def test_our_methods_get_a_per_stage_breakdown(bench_odometry, sim_sequence):
 
 def test_isolated_runs_report_process_time_and_memory(bench_odometry, sim_sequence, tmp_path):
     """--isolate: each method in processes of its own, ours twice (empty, then filled
-    compilation cache), a peer once; the table gives frame times and both runs."""
+    compilation cache), a peer once, with their wall and CPU time; the table gives frame
+    times, both runs and the cores the last one kept busy."""
     import json
+    import os
     import subprocess
     import sys
 
@@ -79,9 +81,13 @@ def test_isolated_runs_report_process_time_and_memory(bench_odometry, sim_sequen
     results = json.loads(out.read_text())
     ours, peer = results["00/gicp"], results["00/small_gicp"]
     assert list(ours["process_s"]) == list(ours["peak_mib"]) == ["first", "cached"]
-    assert list(peer["process_s"]) == ["first"]
+    assert list(ours["cpu_s"]) == ["first", "cached"]
+    assert list(peer["process_s"]) == list(peer["cpu_s"]) == ["first"]
     for r in (ours, peer):
         assert all(v > 0 for v in r["process_s"].values())
+        # CPU time of the child alone (user and system, all its threads), at most all cores
+        for label, cpu in r["cpu_s"].items():
+            assert 0 < cpu <= (os.cpu_count() + 0.5) * r["process_s"][label], (label, cpu)
         assert all(v > 50 for v in r["peak_mib"].values())  # a Python process with NumPy
         assert 0 < r["frame_ms"]["median"] <= r["frame_ms"]["p95"]
     assert ours["queries_per_frame"] >= 1 and ours["frames"] == 4
@@ -89,4 +95,5 @@ def test_isolated_runs_report_process_time_and_memory(bench_odometry, sim_sequen
     cells = rows[0].strip("| ").split(" | ")
     ratio = ours["frame_ms"]["median"] / peer["frame_ms"]["median"]
     assert cells[1] == "gicp" and cells[5] == f"{ratio:.2f}x"
-    assert cells[7].count(" / ") == 1 and cells[8].count(" / ") == 1
+    assert cells[7].count(" / ") == 1 and cells[9].count(" / ") == 1
+    assert cells[8] == f"{ours['cpu_s']['cached'] / ours['process_s']['cached']:.2f}"
