@@ -226,15 +226,22 @@ class StickyBuckets:
 
 
 def pad(
-    array: np.ndarray, size: int, fill: float = 0.0, dtype: npt.DTypeLike = None
+    array: np.ndarray,
+    size: int,
+    fill: float = 0.0,
+    dtype: npt.DTypeLike = None,
+    rows: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pad the leading axis to ``size``: (N, ...) -> ((size, ...), mask (size,) True for real),
-    in ``dtype`` (default: the array's)."""
+    in ``dtype`` (default: the array's); ``rows`` (N,) places row i at ``rows[i]`` (default:
+    at i)."""
     n = len(array)
-    if n > size:
-        raise ValueError(f"cannot pad {n} rows into {size}")
+    end = n if rows is None else (int(rows.max()) + 1 if n else 0)
+    if end > size:
+        raise ValueError(f"cannot pad {n} rows ending at {end} into {size}")
+    place = slice(0, n) if rows is None else rows
     out = np.full((size, *array.shape[1:]), fill, dtype=array.dtype if dtype is None else dtype)
-    out[:n] = array
+    out[place] = array
     mask = np.zeros(size, dtype=bool)
-    mask[:n] = True
+    mask[place] = True
     return out, mask

@@ -45,29 +45,45 @@ class PreparedCloud:
         """Distance of the farthest point from the cloud's origin (m)."""
         return float(np.sqrt(np.max(np.sum(self.points**2, axis=1))))
 
+    # Each point's row in the padded device arrays (N,); None: its index. The local map lays
+    # its keyframes out in fixed slots, so that a new keyframe rewrites only its own rows.
+    rows: np.ndarray | None = None
+
     _padded: dict[tuple, Cloud] = field(default_factory=dict, repr=False)
 
     def padded(self, size: int | None = None) -> Cloud:
         """Device arrays padded to ``size`` rows (default: the bucket size), cached."""
-        size = pc.bucket_size(len(self.points)) if size is None else size
+        end = len(self.points) if self.rows is None else int(self.rows.max()) + 1
+        size = pc.bucket_size(end) if size is None else size
         key = (size, geo.real_dtype())
-        if key in self._padded:
-            return self._padded[key]
-        # Padded in the device's precision on the host: half the bytes to copy in float32, and
-        # no conversion compiled per shape on the device.
-        real = geo.real_dtype()
-        points, mask = pc.pad(self.points, size, dtype=real)
-        covs, _ = pc.pad(self.covs, size, dtype=real)
-        covs[len(self.points) :] = np.eye(3)  # keeps padded rows finite
-        features = np.zeros((len(self.points), 0)) if self.features is None else self.features
-        cloud = Cloud(
-            jnp.asarray(points),
-            jnp.asarray(covs),
-            jnp.asarray(mask),
-            jnp.asarray(pc.pad(features, size, dtype=real)[0]),
-        )
-        self._padded[key] = cloud
-        return cloud
+        if key not in self._padded:
+            self._padded[key] = device_cloud(self.points, self.covs, self.features, size,
+                                             self.rows)  # fmt: skip
+        return self._padded[key]
+
+    def place(self, size: int, device: Cloud) -> None:
+        """Take ``device`` as the padded arrays at ``size`` rows (laid out by ``rows``)."""
+        self._padded[(size, geo.real_dtype())] = device
+
+
+def device_cloud(
+    points: np.ndarray,
+    covs: np.ndarray,
+    features: np.ndarray | None,
+    size: int,
+    rows: np.ndarray | None = None,
+) -> Cloud:
+    """The device arrays of a cloud's columns (N, ...), padded to ``size`` rows (row i at
+    ``rows[i]``, default i), in the device's precision."""
+    # Padded in the device's precision on the host: half the bytes to copy in float32, and
+    # no conversion compiled per shape on the device.
+    real = geo.real_dtype()
+    features = np.zeros((len(points), 0)) if features is None else features
+    features = pc.pad(features, size, dtype=real, rows=rows)[0]
+    points, mask = pc.pad(points, size, dtype=real, rows=rows)
+    covs = pc.pad(covs, size, dtype=real, rows=rows)[0]
+    covs[~mask] = np.eye(3)  # keeps padded rows finite
+    return Cloud(*(jnp.asarray(x) for x in (points, covs, mask, features)))
 
 
 class RegistrationResult(NamedTuple):
@@ -244,7 +260,8 @@ def align_prepared(
                 hits = target.tree.query(
                     moved, config.num_candidates, config.max_correspondence_distance
                 )
-                cand, valid = (jnp.asarray(pc.pad(x, size)[0]) for x in hits)
+                rows = hits[0] if target.rows is None else target.rows[hits[0]]
+                cand, valid = (jnp.asarray(pc.pad(x, size)[0]) for x in (rows, hits[1]))
                 T_query, queries = T, queries + 1
         with timer("solve"):  # dispatch, then the wait for the results np.asarray reads
             _, xi, system = solve_round(

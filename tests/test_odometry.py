@@ -27,7 +27,13 @@ from gloam_jax.preprocess import (
     preprocess_scan,
     voxel_centres,
 )
-from gloam_jax.registration import PreparedCloud, align_prepared, conditioning, prepare
+from gloam_jax.registration import (
+    PreparedCloud,
+    align_prepared,
+    conditioning,
+    device_cloud,
+    prepare,
+)
 from gloam_jax.timing import STAGES
 
 
@@ -569,6 +575,41 @@ def test_the_voxel_map_keeps_each_voxels_newest_keyframe_points():
     # the tree answers over the merged rows
     index, found = merged.tree.query(merged.points[:5] + 0.01, 1)
     assert found.all() and (index[:, 0] == np.arange(5)).all()
+
+
+def test_the_map_writes_each_keyframe_into_its_own_device_slot():
+    """A keyframe rewrites only its slot of the map's device arrays, and what the solver
+    gathers through the rows is each point's own row, as with every slot written again; a
+    scan size that grows lays the slots out anew."""
+    rng = np.random.default_rng(5)
+    buckets = pc.StickyBuckets()
+    local_map = LocalMap(3, buckets)
+    for i, n in enumerate((40, 55, 31, 60, 47, 52, 200, 38)):
+        points = rng.normal(size=(n, 3)) * 5
+        covs = np.tile(np.eye(3), (n, 1, 1)) * rng.uniform(0.5, 2.0, (n, 1, 1))
+        normals = np.tile([0, 0, 1.0], (n, 1))
+        cloud = PreparedCloud(points, covs, KdTree(points), rng.normal(size=(n, 6)),
+                              normals=normals, planarity=np.ones(n))  # fmt: skip
+        T = np.eye(4)
+        T[:3, 3] = [1.0 * i, 0.0, 0.0]
+        local_map.add(cloud, T)
+        merged, size = local_map.cloud, local_map.size
+        device = merged.padded(size)
+        slot_size = buckets.floor("scan")
+        assert size == 3 * slot_size and len(merged.rows) == len(merged.points)
+        # each keyframe of the window inside its own slot
+        starts = np.cumsum([0] + [len(k["points"]) for k in local_map.keyframes])
+        slots = [set(merged.rows[a:b] // slot_size) for a, b in np.c_[starts[:-1], starts[1:]]]
+        assert all(len(s) == 1 for s in slots) and len(set.union(*slots)) == len(slots)
+        full = device_cloud(merged.points, merged.covs, merged.features, size, merged.rows)
+        for written, expected in zip(device, full, strict=True):
+            np.testing.assert_array_equal(np.asarray(written), np.asarray(expected))
+        np.testing.assert_allclose(np.asarray(device.points)[merged.rows], merged.points,
+                                   rtol=1e-6, atol=1e-5)  # fmt: skip
+        assert int(np.asarray(device.mask).sum()) == len(merged.points)
+    assert slot_size > 200  # the 200-point keyframe grew the slots
+    with pytest.raises(ValueError, match="ending at 6 into 4"):
+        pc.pad(np.zeros((2, 3)), 4, rows=np.array([0, 5]))
 
 
 def test_the_map_rows_are_the_keyframes_concatenated_and_earlier_views_stay_valid():
