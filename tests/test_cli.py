@@ -266,7 +266,7 @@ def test_the_shipped_protocol_configs_are_the_experiments_that_made_the_shipped_
     pairs = {
         "train_protocol": ("w11_warmup/train_protocol_11_warmup.yaml", "default"),
         "train_protocol_net": ("net_protocol/train_protocol_net_rank_finetune.yaml", "net"),
-        "train_hdl64": ("paper_windows/train_default.yaml", "hdl64"),
+        "train_hdl64": ("grid_features/train_grid.yaml", "hdl64"),
     }
     for shipped, (chain, model) in pairs.items():
         config = load_config(shipped, TrainConfig)
