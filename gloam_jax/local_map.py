@@ -24,7 +24,7 @@ class LocalMap:
     core instead of adding to the frame's time (the k-d tree is built without the GIL). The
     keyframes' rows are kept end to end (:class:`_Rows`), so a keyframe copies its own rows.
     On the device each keyframe has a slot of the scans' padded size, so a new keyframe
-    rewrites its own slot instead of the whole map being copied again (8.8 ms for 245,760
+    rewrites its own slot instead of the whole map being copied again (5.5-8.8 ms for 245,760
     rows, experiments/map_slots).
 
     With a ``resolution`` (m), the map keeps one keyframe's points per voxel of that size, the
@@ -48,7 +48,6 @@ class LocalMap:
         self._pending: Future | None = None
         self._added = 0  # keyframes added since the map was (re)started: the next one's number
         self._rows = _Rows()  # without a resolution: the keyframes' columns, end to end
-        self._slots: list[int] = []  # and the device slot of each keyframe, oldest first
         self._merged_size = 0  # the padded size of the last merge's device arrays
         # One worker: merges run in the order of their keyframes.
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="local-map")
@@ -69,10 +68,8 @@ class LocalMap:
             return
         self._rows.append(keyframe)
         self._rows.keep(self.max_keyframes)
-        slot = self._added % self.max_keyframes  # the slot of the keyframe that leaves, if any
-        self._slots = [*self._slots, slot][-self.max_keyframes :]
         self._added += 1
-        self._merge((keyframe, slot))
+        self._merge(keyframe)
 
     def _fold(self, keyframe: dict) -> None:
         """Queue the voxel map's merge of the next keyframe after the one pending."""
@@ -95,14 +92,14 @@ class LocalMap:
         self._rows = _Rows()
         for keyframe in self.keyframes:
             self._rows.append(keyframe)
-        self._slots = list(range(len(self.keyframes)))
         self._added = len(self.keyframes)
         self._merge()
 
-    def _merge(self, new: tuple[dict, int] | None = None) -> None:
+    def _merge(self, new: dict | None = None) -> None:
         """Queue the merge of the keyframes' rows (k-d tree, padded device arrays); ``new``:
-        the keyframe just added and its slot, written into the last merge's device arrays
-        where those have the map's current size (None: all slots written)."""
+        the keyframe just added, written into its slot of the last merge's device arrays where
+        those have the map's current size (None: all slots written). Keyframe number j has
+        slot ``j mod max_keyframes``, so the window's keyframes hold distinct slots."""
         # The scans' size holds every keyframe (they were scans); grown here for keyframes from
         # elsewhere. Sized on this thread, not the worker's: StickyBuckets is not thread-safe.
         self.buckets("scan", max(len(k["points"]) for k in self.keyframes))
@@ -111,9 +108,11 @@ class LocalMap:
         if new is None or previous is None or size != self._merged_size:
             previous = new = None
         self._merged_size = size
+        first = self._added - len(self.keyframes)  # the oldest keyframe's number
+        slots = [j % self.max_keyframes for j in range(first, self._added)]
         lengths = [len(k["points"]) for k in self.keyframes]
         self._pending = self._worker.submit(
-            _merge, self._rows.view(), self._slots, lengths, slot_size, size, previous, new
+            _merge, self._rows.view(), slots, lengths, slot_size, size, previous, new
         )
 
     @property
@@ -134,7 +133,7 @@ class LocalMap:
         self.keyframes, self.last_pose = [], None
         self._merged = self._pending = None
         self._added = self._merged_size = 0
-        self._rows, self._slots = _Rows(), []
+        self._rows = _Rows()
 
     @property
     def cloud(self) -> PreparedCloud | None:
@@ -199,13 +198,13 @@ def _merge(
     slot_size: int,
     size: int,
     previous: Future | PreparedCloud | None,
-    new: tuple[dict, int] | None,
+    new: dict | None,
 ) -> PreparedCloud:
     """The prepared cloud of the world-frame keyframes' columns ``merged`` (of ``lengths``
     rows each, oldest first), each keyframe at its slot of ``slot_size`` rows of device arrays
     ``size`` rows long (a scan bucket grown since lays them out again on first use). With a
-    ``previous`` merge of that size, they are its arrays with the ``new`` keyframe's slot
-    written; else all are written."""
+    ``previous`` merge of that size, they are its arrays with the slot of the ``new`` (newest)
+    keyframe written; else all are written."""
     starts = [s * slot_size for s in slots]
     rows = np.concatenate([np.arange(s, s + n, dtype=np.int32)
                            for s, n in zip(starts, lengths, strict=True)])  # fmt: skip
@@ -214,9 +213,8 @@ def _merge(
         cloud.padded(size)
         return cloud
     before = (previous.result() if isinstance(previous, Future) else previous).padded(size)
-    keyframe, slot = new
-    block = device_cloud(keyframe["points"], keyframe["covs"], keyframe["features"], slot_size)
-    cloud.place(size, _write(before, block, slot * slot_size))
+    block = device_cloud(new["points"], new["covs"], new["features"], slot_size)
+    cloud.place(size, _write(before, block, starts[-1]))
     return cloud
 
 

@@ -53,8 +53,9 @@ class PreparedCloud:
 
     def padded(self, size: int | None = None) -> Cloud:
         """Device arrays padded to ``size`` rows (default: the bucket size), cached."""
-        end = len(self.points) if self.rows is None else int(self.rows.max()) + 1
-        size = pc.bucket_size(end) if size is None else size
+        if size is None:
+            end = len(self.points) if self.rows is None else int(self.rows.max()) + 1
+            size = pc.bucket_size(end)
         key = (size, geo.real_dtype())
         if key not in self._padded:
             self._padded[key] = device_cloud(self.points, self.covs, self.features, size,
