@@ -418,7 +418,7 @@ class Odometry:
             scan_size = self.buckets("scan", len(points))
             prep = cfg.preprocess
             cloud = build_cloud(points, prep.num_neighbors, prep.regularizer, source, scan_size,
-                                pca, self.learned, timer=timer)  # fmt: skip
+                                pca, self.learned, timer, centres.neighbours)  # fmt: skip
         except InputError as err:
             status.error = str(err)
             return self._accept(T_pred, None, status, frame_dt)

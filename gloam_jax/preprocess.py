@@ -297,7 +297,14 @@ class VoxelCentres:
     ``points`` (M, 3) float64 voxel centres as measured; ``times`` (M,) their mean per-point
     time, s from the scan's reference time (zeros when the policy is off); ``features``
     (M, 6) their mean PCA features or None; ``dropped``: NaN / inf points removed;
-    ``deskew``: whether the policy moves them (not ``off``).
+    ``deskew``: whether the policy moves them (not ``off``); ``neighbours`` (M, k) int32:
+    each centre's ``num_neighbors`` nearest centres as measured, nearest first, where a grid
+    backbone queried them for its features, else None.
+
+    Where given, the covariances take these neighbourhoods instead of querying the deskewed
+    centres again: the deskew moves neighbouring points alike (measured within about a
+    millisecond of each other), except across the sweep's seam, so the sets differ little,
+    and the query is not paid twice (experiments/shared_knn).
     """
 
     points: np.ndarray
@@ -305,6 +312,7 @@ class VoxelCentres:
     features: np.ndarray | None
     dropped: int
     deskew: bool
+    neighbours: np.ndarray | None = None
 
 
 def voxel_centres(
@@ -361,10 +369,14 @@ def voxel_centres(
     if config.downsampling_resolution > 0:
         grid = pc.voxel_grid(points, config.downsampling_resolution)
         columns = [grid.means(a) for a in columns]
+    neighbours = None
     if grid_features:
         with nullcontext() if timer is None else timer("features"):
             intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
-            columns.append(pca.transform(backbone.voxel_features(points, intensity, grid)))
+            grid_rows, nearest = backbone.voxel_features(points, intensity, grid)
+            columns.append(pca.transform(grid_rows))
+        if nearest.shape[1] >= config.num_neighbors:
+            neighbours = nearest[:, : config.num_neighbors]
     reduced = columns[0]
     return VoxelCentres(
         points=reduced[:, :3],
@@ -372,6 +384,7 @@ def voxel_centres(
         features=columns[1] if pca is not None else None,
         dropped=dropped,
         deskew=policy != "off",
+        neighbours=neighbours,
     )
 
 

@@ -198,16 +198,23 @@ def build_cloud(
     pca_features: np.ndarray | None = None,
     learned: Learned | None = None,
     timer: StageTimer | None = None,
+    neighbours: np.ndarray | None = None,
 ) -> PreparedCloud:
     """Tree, covariances and association features of clean, downsampled points (N, 3)
     float64; ``pca_features`` (N, 6) feed the ``learned`` parts (see cloud_attributes).
     ``size``: rows the jitted covariance code sees (default: the bucket size); ``timer``
-    counts the stages ``neighbours`` and ``covariances``."""
+    counts the stages ``neighbours`` and ``covariances``; ``neighbours``: each point's
+    ``num_neighbors`` nearest (N, k) int32 where already found (:class:`VoxelCentres`),
+    else queried here."""
     learned = Learned() if learned is None else learned
     timer = StageTimer() if timer is None else timer
     with timer("neighbours"):
         tree = KdTree(points, source)
-        neighbours, _ = tree.query(points, num_neighbors)
+        if neighbours is None:
+            neighbours, _ = tree.query(points, num_neighbors)
+        elif neighbours.shape != (len(points), num_neighbors):
+            raise ValueError(f"neighbours {neighbours.shape} for {len(points)} points, "
+                             f"k = {num_neighbors}")  # fmt: skip
     if pca_features is None:
         if learned.eigenvalue is not None or learned.conversion is not None:
             raise InputError(source, "learned covariances or association need point features")

@@ -258,7 +258,7 @@ class GeometricBackbone:
         # np.take: the same rows as per_voxel[inverse], gathered four times faster.
         features = np.concatenate(
             [
-                np.take(self._per_voxel(voxels, grid.counts), grid.inverse, axis=0),
+                np.take(self._per_voxel(voxels, grid.counts)[0], grid.inverse, axis=0),
                 self._per_point(xyz, intensity, voxels),
             ],
             axis=1,
@@ -273,24 +273,24 @@ class GeometricBackbone:
 
     def voxel_features(
         self, xyz: np.ndarray, intensity: np.ndarray | None, grid: pc.VoxelGrid
-    ) -> np.ndarray:
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The mean of :meth:`__call__`'s rows over each voxel of ``grid`` (M, D) float32,
         from the points (N, 3) float64 and intensities (N,) or None within the range: the
         same values without a second voxel grid or a row per point, where ``grid`` has this
-        backbone's voxels (:meth:`shares_grid`)."""
+        backbone's voxels (:meth:`shares_grid`). Also the k-NN of the voxel centres it
+        queried (M, k) int32, nearest first, k its largest scale (M where fewer), for the
+        covariances to reuse."""
         voxels = grid.means(xyz)
+        per_voxel, nearest = self._per_voxel(voxels, grid.counts)
         features = np.concatenate(
-            [
-                self._per_voxel(voxels, grid.counts),
-                grid.means(self._per_point(xyz, intensity, voxels)),
-            ],
-            axis=1,
+            [per_voxel, grid.means(self._per_point(xyz, intensity, voxels))], axis=1
         )
-        return features[:, self._keep] if self.drop else features
+        return (features[:, self._keep] if self.drop else features), nearest
 
-    def _per_voxel(self, voxels: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    def _per_voxel(self, voxels: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Eigenvalue descriptors at every scale and the density (M, 8 * scales + 1) float32
-        of voxel means (M, 3) float64 holding ``counts`` (M,) points."""
+        of voxel means (M, 3) float64 holding ``counts`` (M,) points, and their k-NN (M, k)
+        int32 at the largest scale."""
         k_max = min(self.scales[-1], len(voxels))
         dist, idx = KdTree(voxels).nearest(voxels, k_max)
         # Neighbourhood sums of first and second moments as sparse (M, M) selection matrices
@@ -313,7 +313,7 @@ class GeometricBackbone:
         radius = np.maximum(dist[:, -1], self.voxel_size / 2)
         density = counts[idx].sum(axis=1) / (4 / 3 * np.pi * radius**3)
         columns.append(np.log10(density)[:, None] / _DENSITY_DECADES)
-        return np.concatenate(columns, axis=1).astype(np.float32)
+        return np.concatenate(columns, axis=1).astype(np.float32), idx.astype(np.int32)
 
     def _per_point(
         self, xyz: np.ndarray, intensity: np.ndarray | None, voxels: np.ndarray

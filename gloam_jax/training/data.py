@@ -31,7 +31,7 @@ from gloam_jax.errors import InputError
 from gloam_jax.features import Backbone
 from gloam_jax.features.pca import FeaturePCA
 from gloam_jax.neighbors import KdTree
-from gloam_jax.preprocess import PreprocessConfig, on_grid, preprocess_scan
+from gloam_jax.preprocess import PreprocessConfig, deskew_centres, on_grid, voxel_centres
 from gloam_jax.training.batch import BatchConfig, BatchData, PairBatch, ScanSet, Window
 from gloam_jax.training.losses import scaled_lengths, segment_plan
 
@@ -91,18 +91,13 @@ def _prepare_scan(seq, i, config, pca, backbone, velocity, frame_dt) -> Prepared
     features = None
     if pca is not None and grid_backbone is None:
         features = backbone(scan, path=path, frame=i)
-    points, pca_features, _ = preprocess_scan(
-        scan,
-        seq.point_times(i),
-        config,
-        velocity=velocity,
-        frame_dt=frame_dt,
-        pca=pca,
-        features=features,
-        backbone=grid_backbone,
-        source=path,
-    )
-    neighbours, _ = KdTree(points, path).query(points, config.num_neighbors)
+    centres = voxel_centres(scan, seq.point_times(i), config, pca=pca, features=features,
+                            backbone=grid_backbone, source=path)  # fmt: skip
+    points, pca_features = deskew_centres(centres, velocity, frame_dt), centres.features
+    # The odometry's neighbourhoods: the grid backbone's where it found them (VoxelCentres)
+    neighbours = centres.neighbours
+    if neighbours is None:
+        neighbours, _ = KdTree(points, path).query(points, config.num_neighbors)
     size = pc.bucket_size(len(points))
     values, vectors = _knn_eigen(
         jnp.asarray(pc.pad(points, size)[0], jnp.float32), jnp.asarray(pc.pad(neighbours, size)[0])
