@@ -222,3 +222,33 @@ def test_ctrl_c_checkpoints_the_last_completed_step(tiny_training, tmp_path):
     for a, b in zip(jax.tree_util.tree_leaves(again), jax.tree_util.tree_leaves(trees),
                     strict=True):  # fmt: skip
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_training_scans_take_the_grid_backbone_s_neighbourhoods(sim_sequence):
+    """As the odometry does (VoxelCentres.neighbours): with a backbone on the preprocessing's
+    own grid, a prepared scan's covariances are those of the backbone's k-NN of the centres
+    as measured, not of a second query of the deskewed centres."""
+    from gloam_jax.features import fit_pca, get_backbone
+    from gloam_jax.neighbors import KdTree
+    from gloam_jax.preprocess import voxel_centres
+
+    seq = io.KittiSequence(sim_sequence, "00")
+    band = {"min_range": PREPROCESS.min_range, "max_range": PREPROCESS.max_range}
+    backbone = get_backbone("geometric", voxel_size=0.5, scales=[10], **band)
+    pca = fit_pca([backbone(seq.scan(0))])
+    scan = prepare_scans(seq, range(3), PREPROCESS, pca=pca, backbone=backbone).scans[2]
+    centres = voxel_centres(seq.scan(2), seq.point_times(2), PREPROCESS, pca=pca,
+                            backbone=backbone)  # fmt: skip
+    again = KdTree(scan.points).query(scan.points, PREPROCESS.num_neighbors)[0]
+
+    def error(neighbours: np.ndarray) -> np.ndarray:
+        """|prepared eigenvalues - those of these neighbourhoods of the deskewed centres|,
+        over float32's closed-form accuracy (relative to each point's largest eigenvalue)."""
+        nb = scan.points[neighbours]  # (n, k, 3)
+        centred = nb - nb.mean(axis=1, keepdims=True)
+        expected = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", centred, centred) / nb.shape[1])
+        return np.abs(scan.values - expected) / (1e-5 + 3e-3 * expected[:, 2:])
+
+    assert error(centres.neighbours).max() <= 1
+    # The deskew moved some neighbourhoods here, so a second query would be told apart.
+    assert error(again).max() > 10
