@@ -23,7 +23,10 @@ each method in processes of its own and adds the whole process's wall time, CPU 
 and system, all threads) and peak memory (``process_s``, ``cpu_s``, ``peak_mib``): first with
 an empty JAX compilation cache, then with the cache that run filled (the peers compile
 nothing: one run). CPU time over wall time is the cores a method keeps busy: on two cores,
-one near 2 cannot go faster by moving work between its threads.
+one near 2 cannot go faster by moving work between its threads. ``--rounds N`` runs the
+methods in turn N times (round r > 1 under ``name/method@r``): this machine's speed drifts by
+tens of percent within an hour, so a ratio is only as good as the time between its two runs,
+and the ratio table compares each run with the same round's ``gicp`` and small_gicp.
 
 Prints t_err (%), r_err (deg/100 m) with the KITTI devkit metric in the camera-0 frame, and the
 median milliseconds per frame of registration; for this project's methods also the wall time
@@ -279,6 +282,10 @@ def main() -> None:
         action="store_true",
         help="each method in processes of its own: process time, peak memory",
     )
+    parser.add_argument(
+        "--rounds", type=int, default=1,
+        help="run the methods in turn this many times; ratios within each round",
+    )  # fmt: skip
     args = parser.parse_args()
 
     import jax
@@ -297,8 +304,9 @@ def main() -> None:
         seq = io.KittiSequence(args.data, name)
         n = len(seq) if args.frames is None else min(args.frames, len(seq))
         gt = seq.gt_poses_cam[:n]
-        for method in args.methods.split(","):
-            key = f"{name}/{method}"
+        for round_, method in ((r, m) for r in range(1, args.rounds + 1)
+                               for m in args.methods.split(",")):  # fmt: skip
+            key = f"{name}/{method}" + (f"@{round_}" if round_ > 1 else "")
             if key in results:  # resume: keep what an earlier run measured
                 continue
             if args.isolate:
@@ -326,6 +334,35 @@ def main() -> None:
     print("\n" + speed_table(results))
     if any(r.get("stage_ms") for r in results.values()):
         print("\n" + stage_table(results))
+    if any("@" in key for key in results):
+        print("\n" + ratio_table(results))
+
+
+def _split(key: str) -> tuple[str, str, str]:
+    """(sequence, method, round suffix: "" or "@r") of a results key."""
+    name, rest = key.split("/")
+    method, _, round_ = rest.partition("@")
+    return name, method, f"@{round_}" if round_ else ""
+
+
+def ratio_table(results: dict) -> str:
+    """Each method's median frame time over ``gicp``'s and over small_gicp's of the same
+    sequence and round, per round and their median over the rounds."""
+    ratios: dict[tuple[str, str, str], list[float]] = {}
+    for key, r in results.items():
+        name, method, round_ = _split(key)
+        if method == "small_gicp":  # the reference, not a row
+            continue
+        for peer in ("gicp", "small_gicp"):
+            other = results.get(f"{name}/{peer}{round_}")
+            if other and method != peer and r.get("frame_ms") and other.get("frame_ms"):
+                ratio = r["frame_ms"]["median"] / other["frame_ms"]["median"]
+                ratios.setdefault((name, method, peer), []).append(ratio)
+    lines = ["| sequence | method | over | per round | median |", "|---|---|---|---|---|"]
+    for (name, method, peer), values in ratios.items():
+        rounds = ", ".join(f"{v:.2f}" for v in values)
+        lines.append(f"| {name} | {method} | {peer} | {rounds} | {np.median(values):.2f}x |")
+    return "\n".join(lines)
 
 
 def speed_table(results: dict) -> str:
@@ -343,13 +380,15 @@ def speed_table(results: dict) -> str:
         return " / ".join(format(v, fmt) for v in values.values()) if values else "-"
 
     for key, r in results.items():
-        name, method = key.split("/")
-        frame, peer = r.get("frame_ms"), results.get(f"{name}/small_gicp", {}).get("frame_ms")
+        name, method, round_ = _split(key)
+        frame = r.get("frame_ms")
+        peer = results.get(f"{name}/small_gicp{round_}", {}).get("frame_ms")
         ratio = f"{frame['median'] / peer['median']:.2f}x" if frame and peer else "-"
         process, cpu = r.get("process_s"), r.get("cpu_s")
         cores = f"{list(cpu.values())[-1] / list(process.values())[-1]:.2f}" if cpu else "-"
         lines.append(
-            f"| {name} | {method} | {r['t_err_percent']:.3f} | {r['r_err_deg_per_100m']:.3f} | "
+            f"| {name} | {method}{round_} | {r['t_err_percent']:.3f} | "
+            f"{r['r_err_deg_per_100m']:.3f} | "
             f"{pair(frame, '.1f')} | {ratio} | {r['median_ms_per_frame']:.1f} | "
             f"{pair(process, '.0f')} | {cores} | {pair(r.get('peak_mib'), '.0f')} |"
         )
@@ -368,7 +407,7 @@ def stage_table(results: dict) -> str:
         stages = r.get("stage_ms")
         if not stages:
             continue
-        name, method = key.split("/")
+        name, method = key.split("/")  # with its round, if any
         cells = [f"{stages[s]['median']:.1f} / {stages[s]['p95']:.1f}" for s in timing.STAGES]
         total = sum(stages[s]["median"] for s in timing.STAGES)
         lines.append(f"| {name} | {method} | " + " | ".join(cells) + f" | {total:.1f} |")

@@ -97,3 +97,23 @@ def test_isolated_runs_report_process_time_and_memory(bench_odometry, sim_sequen
     assert cells[1] == "gicp" and cells[5] == f"{ratio:.2f}x"
     assert cells[7].count(" / ") == 1 and cells[9].count(" / ") == 1
     assert cells[8] == f"{ours['cpu_s']['cached'] / ours['process_s']['cached']:.2f}"
+
+
+def test_rounds_take_each_ratio_within_its_own_round(bench_odometry):
+    """--rounds: round r > 1 is keyed name/method@r, and every ratio (the speed table's
+    against small_gicp, the ratio table's against gicp and small_gicp) compares runs of the
+    same round, whatever the machine did between rounds."""
+
+    def run(ms: float) -> dict:
+        frame = {"median": ms, "p95": 1.5 * ms}
+        return {"t_err_percent": 0.2, "r_err_deg_per_100m": 0.1, "frame_ms": frame,
+                "median_ms_per_frame": ms}  # fmt: skip
+
+    # round 2 ran on a machine 50 % slower
+    results = {"9/gicp": run(60.0), "9/gloam": run(75.0), "9/small_gicp": run(40.0)}
+    results |= {"9/gicp@2": run(90.0), "9/gloam@2": run(114.0), "9/small_gicp@2": run(60.0)}
+    ratios = bench_odometry.ratio_table(results)
+    assert "| 9 | gloam | gicp | 1.25, 1.27 | 1.26x |" in ratios
+    assert "| 9 | gicp | small_gicp | 1.50, 1.50 | 1.50x |" in ratios
+    speed = bench_odometry.speed_table(results)
+    assert "| 9 | gicp@2 | 0.200 | 0.100 | 90.0 / 135.0 | 1.50x |" in speed
