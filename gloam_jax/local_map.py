@@ -6,28 +6,23 @@ from __future__ import annotations
 
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
-from functools import partial
 
 import jax
 import numpy as np
 
 from gloam_jax import pointcloud as pc
 from gloam_jax.gicp import Cloud
-from gloam_jax.neighbors import KdTree, Part, PartedTree
+from gloam_jax.neighbors import KdTree
 from gloam_jax.registration import PreparedCloud, device_cloud
 
 
 class LocalMap:
     """The last keyframes, in the world frame, merged into one prepared cloud.
 
-    Merging (padded device arrays, the k-d tree) runs on worker threads beside the next
-    frame's preprocessing (the k-d tree is built without the GIL). No query waits for the
-    tree over the whole window (15 ms for 225,000 points) to be rebuilt at a keyframe: each
-    keyframe has a small tree of its own, and until the whole window's is built, queries take
-    the last whole tree built, less its keyframes that have left the window, and the small
-    trees of the keyframes since (:class:`PartedTree`, the same answers;
-    experiments/layered_map). The keyframes' rows are kept end to end (:class:`_Rows`), so a
-    keyframe copies its own rows.
+    Merging (k-d tree, padded device arrays) runs on a worker thread: the next frame's
+    preprocessing is mostly single-threaded NumPy, so the tree build overlaps it on another
+    core instead of adding to the frame's time (the k-d tree is built without the GIL). The
+    keyframes' rows are kept end to end (:class:`_Rows`), so a keyframe copies its own rows.
     On the device each keyframe has a slot of the scans' padded size, so a new keyframe
     rewrites its own slot instead of the whole map being copied again (5.5-8.8 ms for 245,760
     rows, experiments/map_slots).
@@ -54,16 +49,8 @@ class LocalMap:
         self._added = 0  # keyframes added since the map was (re)started: the next one's number
         self._rows = _Rows()  # without a resolution: the keyframes' columns, end to end
         self._merged_size = 0  # the padded size of the last merge's device arrays
-        # Without a resolution: each keyframe's number of rows and own tree (a Future), and
-        # the whole-window trees built or being built: (Future, first, end keyframe numbers).
-        self._lengths: dict[int, int] = {}
-        self._trees: dict[int, Future] = {}
-        self._wholes: list[tuple[Future, int, int]] = []
-        self._latest = 0  # the newest window's end: builds for older windows are skipped
-        # One worker: merges run in the order of their keyframes; the whole window's tree is
-        # built on another, so that no merge waits for it.
+        # One worker: merges run in the order of their keyframes.
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="local-map")
-        self._builder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="local-map-tree")
 
     def add(self, cloud: PreparedCloud, T_world_lidar: np.ndarray) -> None:
         R, t = T_world_lidar[:3, :3], T_world_lidar[:3, 3]
@@ -103,14 +90,13 @@ class LocalMap:
                 self._fold(keyframe)
             return
         self._rows = _Rows()
-        self._lengths, self._trees, self._wholes = {}, {}, []
         for keyframe in self.keyframes:
             self._rows.append(keyframe)
         self._added = len(self.keyframes)
         self._merge()
 
     def _merge(self, new: dict | None = None) -> None:
-        """Queue the merge of the keyframes' rows (k-d trees, padded device arrays); ``new``:
+        """Queue the merge of the keyframes' rows (k-d tree, padded device arrays); ``new``:
         the keyframe just added, written into its slot of the last merge's device arrays where
         those have the map's current size (None: all slots written). Keyframe number j has
         slot ``j mod max_keyframes``, so the window's keyframes hold distinct slots."""
@@ -122,37 +108,12 @@ class LocalMap:
         if new is None or previous is None or size != self._merged_size:
             previous = new = None
         self._merged_size = size
-        first, end = self._added - len(self.keyframes), self._added  # keyframe numbers
-        slots = [j % self.max_keyframes for j in range(first, end)]
+        first = self._added - len(self.keyframes)  # the oldest keyframe's number
+        slots = [j % self.max_keyframes for j in range(first, self._added)]
         lengths = [len(k["points"]) for k in self.keyframes]
-        view = self._rows.view()
-        tree = self._tree(view["points"], first, end)
         self._pending = self._worker.submit(
-            _merge, view, tree, slots, lengths, slot_size, size, previous, new
+            _merge, self._rows.view(), slots, lengths, slot_size, size, previous, new
         )
-
-    def _tree(self, points: np.ndarray, first: int, end: int) -> PartedTree:
-        """The tree of keyframes ``first``..``end - 1`` (their rows ``points``): each one's own
-        tree queued on the worker where missing, the whole window's queued on the builder."""
-        for j, keyframe in zip(range(first, end), self.keyframes, strict=True):
-            self._lengths[j] = len(keyframe["points"])
-            if j not in self._trees:
-                self._trees[j] = self._worker.submit(KdTree, keyframe["points"], "local map")
-        self._trees = {j: tree for j, tree in self._trees.items() if j >= first}
-        self._latest = end
-        whole = self._builder.submit(self._build, points, end)
-        self._wholes = [w for w in self._wholes if w[2] > first] + [(whole, first, end)]
-        oldest = self._wholes[0][1]
-        self._lengths = {j: n for j, n in self._lengths.items() if j >= oldest}
-        # each keyframe's first row in the window's rows (negative: before the window)
-        row0 = np.cumsum([0] + [self._lengths[j] for j in range(oldest, end)])
-        row0 = {j: int(row0[j - oldest] - row0[first - oldest]) for j in range(oldest, end)}
-        parts = partial(_parts, tuple(self._wholes), dict(self._trees), row0, first, end)
-        return PartedTree(points, parts, "local map")
-
-    def _build(self, points: np.ndarray, end: int) -> KdTree | None:
-        """The whole window's tree, or None where a newer window's is queued after it."""
-        return KdTree(points, "local map") if end == self._latest else None
 
     @property
     def size(self) -> int:
@@ -173,7 +134,6 @@ class LocalMap:
         self._merged = self._pending = None
         self._added = self._merged_size = 0
         self._rows = _Rows()
-        self._lengths, self._trees, self._wholes = {}, {}, []
 
     @property
     def cloud(self) -> PreparedCloud | None:
@@ -231,27 +191,8 @@ class _Rows:
         }
 
 
-def _parts(
-    wholes: tuple[tuple[Future, int, int], ...],
-    trees: dict[int, Future],
-    row0: dict[int, int],
-    first: int,
-    end: int,
-) -> list[Part]:
-    """The parts that answer a query over keyframes ``first``..``end - 1``: the newest whole
-    tree built (``wholes``: (tree, first, end keyframe numbers)) and the own ``trees`` of the
-    keyframes after it, or every keyframe's own tree before any is built; ``row0``: each
-    keyframe's first row in the window."""
-    for whole, start, stop in reversed(wholes):
-        if whole.done() and whole.result() is not None:
-            return [(whole.result(), row0[start]),
-                    *((trees[j].result(), row0[j]) for j in range(stop, end))]  # fmt: skip
-    return [(trees[j].result(), row0[j]) for j in range(first, end)]
-
-
 def _merge(
     merged: dict[str, np.ndarray | None],
-    tree: PartedTree,
     slots: list[int],
     lengths: list[int],
     slot_size: int,
@@ -260,29 +201,27 @@ def _merge(
     new: dict | None,
 ) -> PreparedCloud:
     """The prepared cloud of the world-frame keyframes' columns ``merged`` (of ``lengths``
-    rows each, oldest first) with their ``tree``, each keyframe at its slot of ``slot_size``
-    rows of device arrays ``size`` rows long (a scan bucket grown since lays them out again on
-    first use). With a ``previous`` merge of that size, they are its arrays (taken from it)
-    with the slot of the ``new`` (newest) keyframe written; else all are written."""
+    rows each, oldest first), each keyframe at its slot of ``slot_size`` rows of device arrays
+    ``size`` rows long (a scan bucket grown since lays them out again on first use). With a
+    ``previous`` merge of that size, they are its arrays with the slot of the ``new`` (newest)
+    keyframe written; else all are written."""
     starts = [s * slot_size for s in slots]
     rows = np.concatenate([np.arange(s, s + n, dtype=np.int32)
                            for s, n in zip(starts, lengths, strict=True)])  # fmt: skip
-    cloud = PreparedCloud(tree=tree, rows=rows, **merged)
+    cloud = PreparedCloud(tree=KdTree(merged["points"], "local map"), rows=rows, **merged)
     if previous is None:
         cloud.padded(size)
         return cloud
-    # The previous merge's arrays are written in place: its registrations are over, and a
-    # copy of the whole map was 4 ms a keyframe alone (0.2 ms in place), 11 ms in a run.
-    before = (previous.result() if isinstance(previous, Future) else previous).release(size)
+    before = (previous.result() if isinstance(previous, Future) else previous).padded(size)
     block = device_cloud(new["points"], new["covs"], new["features"], slot_size)
     cloud.place(size, _write(before, block, starts[-1]))
     return cloud
 
 
-@partial(jax.jit, donate_argnums=0)
+@jax.jit
 def _write(device: Cloud, block: Cloud, start: int) -> Cloud:
-    """``device`` (donated) with the rows from ``start`` on replaced by ``block``'s (one
-    compilation per pair of sizes; ``start`` is traced)."""
+    """``device`` with the rows from ``start`` on replaced by ``block``'s (one compilation per
+    pair of sizes; ``start`` is traced)."""
     return Cloud(*(jax.lax.dynamic_update_slice_in_dim(a, b, start, 0)
                    for a, b in zip(device, block, strict=True)))  # fmt: skip
 

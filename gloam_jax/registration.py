@@ -62,13 +62,6 @@ class PreparedCloud:
                                              self.rows)  # fmt: skip
         return self._padded[key]
 
-    def release(self, size: int) -> Cloud:
-        """The device arrays at ``size`` rows, no longer cached here: for a caller that donates
-        them to a computation (a later :meth:`padded` makes them anew)."""
-        device = self.padded(size)
-        del self._padded[(size, geo.real_dtype())]
-        return device
-
     def place(self, size: int, device: Cloud) -> None:
         """Take ``device`` as the padded arrays at ``size`` rows (laid out by ``rows``)."""
         self._padded[(size, geo.real_dtype())] = device

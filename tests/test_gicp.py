@@ -11,7 +11,7 @@ from gloam_jax import io
 from gloam_jax import pointcloud as pc
 from gloam_jax.errors import InputError
 from gloam_jax.gicp import GICPConfig
-from gloam_jax.neighbors import KdTree, PartedTree
+from gloam_jax.neighbors import KdTree
 from gloam_jax.registration import align, prepare
 
 
@@ -47,30 +47,6 @@ def test_knn_matches_brute_force():
     expected_valid = np.take_along_axis(d, brute, 1) <= 2.0
     np.testing.assert_array_equal(valid, expected_valid)
     np.testing.assert_array_equal(np.where(valid, idx, -1), np.where(expected_valid, brute, -1))
-
-
-@pytest.mark.parametrize("k, max_distance", [(1, np.inf), (5, np.inf), (1, 0.6), (5, 0.6)])
-def test_a_parted_tree_answers_as_one_tree_over_its_rows(k, max_distance):
-    """Parts of a set (the local map while its whole tree is rebuilt): a tree whose first rows
-    have left the set, then trees over the rows added since, one smaller than k. Their k
-    nearest are one tree's over the set, in the same order, with or without a distance bound,
-    also where dropped rows crowd a point's nearest (queries taken near them)."""
-    rng = np.random.default_rng(7)
-    old, kept = rng.uniform(-3, 3, (60, 3)), rng.uniform(-3, 3, (200, 3))
-    new = [rng.uniform(-3, 3, (n, 3)) for n in (80, 3, 40)]
-    rows = np.concatenate([kept, *new])
-    offsets = np.cumsum([len(kept)] + [len(p) for p in new])
-    parts = [(KdTree(np.concatenate([old, kept])), -len(old))]
-    parts += [(KdTree(p), int(o)) for p, o in zip(new, offsets, strict=False)]
-    tree = PartedTree(rows, lambda: parts)
-    queries = np.concatenate([rng.uniform(-3, 3, (100, 3)), old + rng.normal(0, 0.01, old.shape)])
-    dist, idx = tree.nearest(queries, k, max_distance)
-    expected_dist, expected_idx = KdTree(rows).nearest(queries, k, max_distance)
-    np.testing.assert_array_equal(idx, expected_idx)
-    np.testing.assert_allclose(dist, expected_dist)
-    assert (idx < len(rows)).any() and (max_distance == np.inf or (idx == len(rows)).any())
-    with pytest.raises(InputError, match="too few points for 400 neighbours"):
-        tree.query(queries, 400)
 
 
 def test_covariances_and_regularisers():

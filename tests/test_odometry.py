@@ -2,7 +2,6 @@
 
 import dataclasses
 import json
-import threading
 import time
 from pathlib import Path
 
@@ -611,49 +610,6 @@ def test_the_map_writes_each_keyframe_into_its_own_device_slot():
     assert slot_size > 200  # the 200-point keyframe grew the slots
     with pytest.raises(ValueError, match="ending at 6 into 4"):
         pc.pad(np.zeros((2, 3)), 4, rows=np.array([0, 5]))
-
-
-def test_the_maps_tree_answers_as_one_tree_while_its_rebuild_is_pending(monkeypatch):
-    """Until the whole window's tree is built (held back here), the map's queries are
-    answered by the last whole tree, less the keyframes that left the window, and the newer
-    keyframes' own trees: the answers are one tree's over the map's rows, and the same after
-    the build; the previous merge's device arrays, written in place, are made anew on
-    request."""
-    release = threading.Event()
-    build = LocalMap._build
-
-    def held(self, points, end):
-        if end > 4:
-            release.wait(timeout=60)
-        return build(self, points, end)
-
-    monkeypatch.setattr(LocalMap, "_build", held)
-    rng = np.random.default_rng(11)
-    local_map, answers = LocalMap(3, pc.StickyBuckets()), []
-    queries = rng.uniform(-6, 6, (300, 3))
-    for i in range(7):
-        points = rng.uniform(-4, 4, (150, 3))
-        covs, normals = np.tile(np.eye(3), (150, 1, 1)), np.tile([0, 0, 1.0], (150, 1))
-        cloud = PreparedCloud(points, covs, KdTree(points), normals=normals,
-                              planarity=np.ones(150))  # fmt: skip
-        T = np.eye(4)
-        T[:3, 3] = [0.5 * i, 0.0, 0.0]
-        local_map.add(cloud, T)
-        merged = local_map.cloud
-        merged.padded(local_map.size)
-        answers.append((merged, merged.tree.nearest(queries, 4, 0.8)))
-    assert not local_map._wholes[-1][0].done()  # answered without the whole window's tree
-    release.set()
-    local_map._wholes[-1][0].result()
-    for merged, (dist, idx) in answers:
-        expected_dist, expected_idx = KdTree(merged.points).nearest(queries, 4, 0.8)
-        np.testing.assert_array_equal(idx, expected_idx)
-        np.testing.assert_allclose(dist, expected_dist)
-    np.testing.assert_array_equal(merged.tree.nearest(queries, 4, 0.8)[1], expected_idx)
-    earlier = answers[-2][0]
-    assert earlier._padded == {}  # given to the last merge's write
-    np.testing.assert_array_equal(np.asarray(earlier.padded(local_map.size).mask).sum(),
-                                  len(earlier.points))  # fmt: skip
 
 
 def test_the_map_rows_are_the_keyframes_concatenated_and_earlier_views_stay_valid():
