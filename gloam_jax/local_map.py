@@ -23,7 +23,7 @@ class LocalMap:
     preprocessing is mostly single-threaded NumPy, so the tree build overlaps it on another
     core instead of adding to the frame's time (the k-d tree is built without the GIL). The
     keyframes' rows are kept end to end (:class:`_Rows`), so a keyframe copies its own rows.
-    On the device each keyframe has a slot of the scans' padded size, so a new keyframe
+    On the device each keyframe has a slot of the keyframes' padded size, so a new keyframe
     rewrites its own slot instead of the whole map being copied again (5.5-8.8 ms for 245,760
     rows, experiments/map_slots).
 
@@ -100,8 +100,9 @@ class LocalMap:
         the keyframe just added, written into its slot of the last merge's device arrays where
         those have the map's current size (None: all slots written). Keyframe number j has
         slot ``j mod max_keyframes``, so the window's keyframes hold distinct slots."""
-        # The scans' size holds every keyframe (they were scans); grown here for keyframes from
-        # elsewhere. Sized on this thread, not the worker's: StickyBuckets is not thread-safe.
+        # A slot holds the largest keyframe seen (with headroom; never shrinking), so the map's
+        # shape changes only when a larger one comes. Sized on this thread, not the worker's:
+        # StickyBuckets is not thread-safe.
         self.buckets("scan", max(len(k["points"]) for k in self.keyframes))
         slot_size, size = self.buckets.floor("scan"), self.size
         previous = self._pending if self._pending is not None else self._merged
@@ -118,10 +119,10 @@ class LocalMap:
     @property
     def size(self) -> int:
         """Rows of the padded map (0 before the first keyframe). Without a resolution: its
-        capacity at the scans' current padded size, which it follows as it grows, so each scan
-        bucket pairs with one map shape; with one: the "map" bucket of the merged rows. Either
-        way the solver compiles once per bucket, and a restored map is padded as the run that
-        saved it had it (bit-exact resumes)."""
+        capacity at the slots' size (the sticky "scan" bucket of the keyframes), which it
+        follows as it grows; with one: the "map" bucket of the merged rows. Either way the
+        solver compiles once per pair of source and map buckets, and a restored map is padded
+        as the run that saved it had it (bit-exact resumes)."""
         if not self.keyframes:
             return 0
         if self.resolution:

@@ -186,10 +186,10 @@ def corridor(seed: int, length: float = 200.0, n: int = 30000) -> np.ndarray:
     return np.c_[x, y, z]
 
 
-def test_a_denser_scan_moves_up_a_bucket_with_all_its_points(sim_sequence, monkeypatch):
-    """Padded sizes grow with the scans and never shrink: a denser scan mid-run is registered
-    with every voxel centre (nothing thinned) and moves the scans, and with them the map, up
-    to a larger bucket, where the later, sparser scans stay: two solver shapes in all."""
+def test_each_scan_is_padded_to_its_own_bucket_with_all_its_points(sim_sequence, monkeypatch):
+    """A scan is registered with every voxel centre (nothing thinned), padded to the smallest
+    bucket that holds it: a denser scan mid-run to a larger one, the later, sparser scans to
+    their own again. The map's slots grow with the largest keyframe and never shrink."""
     seq = io.KittiSequence(sim_sequence, "00")
     # Scan 3 with copies of itself 0.25 m above and below (voxels of 0.5 m): more centres,
     # the surfaces thicker but not moved.
@@ -197,10 +197,10 @@ def test_a_denser_scan_moves_up_a_bucket_with_all_its_points(sim_sequence, monke
     up = np.zeros(scan.shape[1], scan.dtype)
     up[2] = 0.25
     denser, denser_times = np.vstack([scan, scan + up, scan - up]), np.tile(seq.point_times(3), 3)
-    pairs = set()  # the (source, target) rows of every registration
+    sources = {}  # frame -> (source rows, padded source rows, padded map rows)
 
     def recording(target, source, prior, config, sizes, **kw):
-        pairs.add(sizes)
+        sources[len(odometry.poses)] = (len(source.points), *sizes)
         return align_prepared(target, source, prior, config, sizes, **kw)
 
     monkeypatch.setattr("gloam_jax.odometry.align_prepared", recording)
@@ -209,13 +209,14 @@ def test_a_denser_scan_moves_up_a_bucket_with_all_its_points(sim_sequence, monke
         frame = (denser, denser_times) if i == 3 else (seq.scan(i), seq.point_times(i))
         odometry.register_frame(*frame, 0.1)
         floors.append(odometry.buckets.floor("scan"))
-        assert odometry.map.size == 10 * floors[-1]  # the map follows the scans' size
+        assert odometry.map.size == 10 * floors[-1]  # the map follows its slots' size
     status = odometry.status[3]
     centres = len(preprocess_scan(denser, denser_times, OdometryConfig().preprocess)[0])
     assert status.num_points == centres and status.num_thinned == 0 and not status.error
-    assert floors[:3] == [floors[0]] * 3 and floors[3:] == [floors[3]] * 3  # no flapping
-    assert floors[2] < centres <= floors[3]  # the denser scan outgrew the first size
-    assert pairs == {(floors[0], 10 * floors[0]), (floors[3], 10 * floors[3])}
+    assert all(padded == pc.bucket_size(n) for n, padded, _ in sources.values())
+    assert sources[3][1] > max(sources[i][1] for i in (1, 2, 4, 5))  # up, and down again
+    assert floors == sorted(floors) and floors[2] < centres <= floors[3]  # a keyframe grew it
+    assert [sources[i][2] for i in range(1, 6)] == [10 * f for f in floors[:5]]
     gt, est = seq.gt_poses_lidar, np.stack(odometry.poses)
     motion = np.linalg.inv(gt[:-1]) @ gt[1:]
     error = np.linalg.inv(motion[:5]) @ np.linalg.inv(est[:-1]) @ est[1:]
@@ -469,14 +470,15 @@ def test_a_restored_state_registers_the_next_frames_exactly(
     sim_sequence, tmp_path, mode, map_resolution
 ):
     seq = io.KittiSequence(sim_sequence, "00")
-    config = OdometryConfig(mode=mode)
+    config = OdometryConfig(mode=mode, keyframe_distance=0.1)  # every frame a keyframe
     if map_resolution:  # a voxel map of 3 keyframes, one every frame: old ones leave it
         config = OdometryConfig(map_resolution=map_resolution, max_keyframes=3,
                                 keyframe_distance=0.1)  # fmt: skip
 
     def frame(i: int) -> tuple[np.ndarray, np.ndarray]:
         """Scan i, and at 8 scan 8 twice, 0.25 m apart in height: after the resume the
-        padded sizes grow from the restored ones."""
+        map's padded size grows from the restored one (frame to model, every keyframe's
+        points)."""
         scan, times = seq.scan(i), seq.point_times(i)
         if i == 8:
             scan, times = np.vstack([scan, scan + [0, 0, 0.25, 0]]), np.tile(times, 2)
@@ -489,7 +491,9 @@ def test_a_restored_state_registers_the_next_frames_exactly(
             # An older checkpoint's key for sizes frozen after a warm-up: ignored.
             io.write_npz(tmp_path / "state.npz", **whole.state(), buckets_frozen=np.bool_(True))
             floor = whole.buckets.floor("scan")
-    assert whole.buckets.floor("scan") > floor and not any(s.num_thinned for s in whole.status)
+    assert not any(s.num_thinned for s in whole.status)
+    slots = mode == "frame_to_model" and not map_resolution
+    assert (whole.buckets.floor("scan") > floor) == slots
     resumed = Odometry(config)
     resumed.restore(dict(np.load(tmp_path / "state.npz", allow_pickle=False)), whole.status[:6])
     assert resumed.resumable and len(resumed.poses) == 6
