@@ -78,7 +78,7 @@ class OdometryConfig:
     # Keys that no longer do anything, with why: old files, and the config.yaml of old run
     # folders that --resume reads, still load (the key is ignored).
     RETIRED: ClassVar[dict[str, str]] = {
-        "warmup_frames": "padded sizes grow with the scans all run long, nothing is thinned",
+        "warmup_frames": "every scan is padded to a size bucket that holds it, nothing is thinned",
     }
 
     def __post_init__(self) -> None:
@@ -127,7 +127,7 @@ class FrameStatus:
 
     num_points: int = 0  # after cleaning, cropping and downsampling
     num_dropped: int = 0  # NaN / inf points removed
-    # Points left out to fit a padded size: always 0, as padded sizes grow with the scans; kept
+    # Points left out to fit a padded size: always 0, as each scan's bucket holds it; kept
     # for the reports that count it (metrics.json thinned_points) and older frames.json files.
     num_thinned: int = 0
     iterations: int = 0

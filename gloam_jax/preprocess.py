@@ -3,7 +3,7 @@
 The steps, in order: drop NaN / inf points and crop to a range band, carry per-point times
 (given, or from the azimuth) and PCA features through the voxel grid (averaged per voxel),
 and deskew the voxel centres to the scan's reference time with a constant velocity. Every
-voxel centre is kept: padded sizes grow with the scans (:class:`pc.StickyBuckets`).
+voxel centre is kept: each scan is padded to the smallest size bucket that holds it.
 
 Deskew policy (``PreprocessConfig.deskew``): ``timestamps`` uses the scan's per-point times,
 ``azimuth`` derives them from each point's azimuth (a spinning sensor, KITTI's HDL-64E),
@@ -237,11 +237,10 @@ def deskew(
     times: np.ndarray,
     xi_per_frame: np.ndarray,
     frame_dt: float,
-    size: int | None = None,
 ) -> np.ndarray:
-    """Undo motion distortion with constant velocity: points (N, 3), times (N,) s -> (N, 3).
-    ``size``: pad to this many rows (default: the bucket size)."""
-    size = pc.bucket_size(len(points)) if size is None else size
+    """Undo motion distortion with constant velocity: points (N, 3), times (N,) s -> (N, 3),
+    padded on the device to their size bucket."""
+    size = pc.bucket_size(len(points))
     padded, _ = pc.pad(np.asarray(points, np.float64), size)
     frac, _ = pc.pad(np.asarray(times, np.float64) / frame_dt, size)
     # float32 unless JAX runs in x64 mode: jnp.asarray picks the default precision.
@@ -392,14 +391,12 @@ def deskew_centres(
     centres: VoxelCentres,
     velocity: np.ndarray | None,
     frame_dt: float = 0.1,
-    buckets: pc.StickyBuckets | None = None,
 ) -> np.ndarray:
     """The centres (M, 3) moved to the scan's reference time with ``velocity`` (se(3) per
-    ``frame_dt``; None: as measured); ``buckets`` size the padding (role "scan")."""
+    ``frame_dt``; None: as measured), padded to their own size bucket on the device."""
     if not centres.deskew or velocity is None:
         return centres.points
-    size = None if buckets is None else buckets("scan", len(centres.points))
-    return deskew(centres.points, centres.times, velocity, frame_dt, size)
+    return deskew(centres.points, centres.times, velocity, frame_dt)
 
 
 def preprocess_scan(
@@ -412,7 +409,6 @@ def preprocess_scan(
     pca: FeaturePCA | None = None,
     features: np.ndarray | None = None,
     backbone: GridFeatures | None = None,
-    buckets: pc.StickyBuckets | None = None,
     source: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None, int]:
     """One raw scan (N, 3+) -> its voxel centres (M, 3) float64, deskewed with ``velocity``
@@ -423,12 +419,11 @@ def preprocess_scan(
 
     ``times`` (N,) per-point times in any convention (normalised by :func:`normalise_times`),
     or None; ``config.deskew`` says whether they, the azimuth or nothing deskews (``auto``:
-    the times when given, else the azimuth; see :func:`resolve_deskew`). ``buckets``
-    size the deskew's padding (role "scan", grown to hold all M centres). Raises InputError
+    the times when given, else the azimuth; see :func:`resolve_deskew`). Raises InputError
     for scans without points in range and for features of the wrong shape.
     """
     centres = voxel_centres(
         scan, times, config, pca=pca, features=features, backbone=backbone, source=source
     )
-    points = deskew_centres(centres, velocity, frame_dt, buckets)
+    points = deskew_centres(centres, velocity, frame_dt)
     return points, centres.features, centres.dropped
