@@ -6,6 +6,7 @@ Without --split: one window per KITTI sequence 00-10, in a scene style like the 
 
     python scripts/simulate_protocol.py --out data/protocol [--frames 120] [--sequences 01,03]
     python scripts/simulate_protocol.py --out data/protocol --sequences 31,33,35,37,39
+    python scripts/simulate_protocol.py --out data/protocol_vlp16 --sensor vlp16   # another sensor
 
 With --split train|val|test: that split's worlds (SPLITS), each a scene family, sensor,
 distortion and speed drawn from its id, recorded in sequences/NNN/world.json; val_long and
@@ -25,7 +26,7 @@ import time
 from pathlib import Path
 
 from gloam_jax.io import read_kitti_poses
-from gloam_jax.simulate import simulate
+from gloam_jax.simulate import SENSORS, simulate
 from gloam_jax.training.protocol import (
     DEFAULT_FRAMES,
     EXTRA_TRAINING_WINDOWS,
@@ -54,11 +55,13 @@ def simulate_windows(args: argparse.Namespace) -> None:
             start=window.start,
             frames=args.frames or DEFAULT_FRAMES,
             style=window.style,
+            sensor=args.sensor,
             seed=args.seed + int(name),
             sequence=name,
         )
         print(
-            f"{name} ({window.style}, from pose {window.start}): {time.perf_counter() - t0:.1f} s",
+            f"{name} ({window.style}, {args.sensor}, from pose {window.start}): "
+            f"{time.perf_counter() - t0:.1f} s",
             flush=True,
         )
 
@@ -103,7 +106,13 @@ def main() -> None:
     parser.add_argument("--poses", type=Path, default=POSES, help="KITTI ground-truth poses")
     parser.add_argument("--sequences", help="only these ids (comma-separated)")
     parser.add_argument("--seed", type=int, default=0, help="added to every sequence's seed")
+    parser.add_argument(
+        "--sensor", choices=tuple(SENSORS), default="hdl64",
+        help="the windows' sensor (without --split; a split's worlds draw their own)",
+    )  # fmt: skip
     args = parser.parse_args()
+    if args.split is not None and args.sensor != "hdl64":
+        parser.error("--sensor is for the windows; a split's worlds draw their own sensor")
     if args.split is None:
         simulate_windows(args)
     else:
