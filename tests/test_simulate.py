@@ -228,3 +228,24 @@ def test_nearest_pair_per_sector_breaks_ties_like_argmin():
         np.testing.assert_array_equal(t_min[s], t[rows].min(axis=0))
         hit = np.isfinite(t_min[s])
         np.testing.assert_array_equal(k[s][hit], rows[np.argmin(t[rows], axis=0)][hit])
+
+
+def test_protocol_windows_take_another_sensor(tmp_path, monkeypatch):
+    import json
+    import sys
+
+    from repo_scripts import import_script
+
+    script = import_script("simulate_protocol")
+    argv = ["simulate_protocol.py", "--out", str(tmp_path), "--sensor", "vlp16",
+            "--sequences", "01", "--frames", "2", "--seed", "1000"]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    script.main()
+    config = json.loads((tmp_path / "sequences/01/simulation.json").read_text())["config"]
+    assert (config["sensor"], config["num_beams"], config["seed"]) == ("vlp16", 16, 1001)
+    x, y, z = io.KittiSequence(tmp_path, "01").scan(1)[:, :3].T
+    elevation = np.degrees(np.arctan2(z, np.hypot(x, y)))
+    assert -16.0 < elevation.min() and elevation.max() < 16.0  # the VLP-16's +-15 deg fan
+    monkeypatch.setattr(sys, "argv", argv + ["--split", "val_long"])
+    with pytest.raises(SystemExit):  # a split's worlds draw their own sensor
+        script.main()
