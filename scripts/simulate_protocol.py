@@ -55,12 +55,12 @@ def simulate_windows(args: argparse.Namespace) -> None:
             start=window.start,
             frames=args.frames or DEFAULT_FRAMES,
             style=window.style,
-            sensor=args.sensor,
+            sensor=args.sensor,  # None: simulate's default, the HDL-64
             seed=args.seed + int(name),
             sequence=name,
         )
         print(
-            f"{name} ({window.style}, {args.sensor}, from pose {window.start}): "
+            f"{name} ({window.style}, {args.sensor or 'hdl64'}, from pose {window.start}): "
             f"{time.perf_counter() - t0:.1f} s",
             flush=True,
         )
@@ -107,11 +107,11 @@ def main() -> None:
     parser.add_argument("--sequences", help="only these ids (comma-separated)")
     parser.add_argument("--seed", type=int, default=0, help="added to every sequence's seed")
     parser.add_argument(
-        "--sensor", choices=tuple(SENSORS), default="hdl64",
-        help="the windows' sensor (without --split; a split's worlds draw their own)",
+        "--sensor", choices=tuple(SENSORS),
+        help="the windows' sensor (default hdl64); not with --split: its worlds draw their own",
     )  # fmt: skip
     args = parser.parse_args()
-    if args.split is not None and args.sensor != "hdl64":
+    if args.split is not None and args.sensor is not None:
         parser.error("--sensor is for the windows; a split's worlds draw their own sensor")
     if args.split is None:
         simulate_windows(args)

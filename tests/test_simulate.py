@@ -1,9 +1,12 @@
 """The LiDAR simulator: geometry of the returns, error sources, determinism, KITTI output."""
 
+import json
+import sys
 from dataclasses import replace
 
 import numpy as np
 import pytest
+from repo_scripts import import_script
 from shared_data import shared_path
 
 from gloam_jax import io
@@ -231,11 +234,6 @@ def test_nearest_pair_per_sector_breaks_ties_like_argmin():
 
 
 def test_protocol_windows_take_another_sensor(tmp_path, monkeypatch):
-    import json
-    import sys
-
-    from repo_scripts import import_script
-
     script = import_script("simulate_protocol")
     argv = ["simulate_protocol.py", "--out", str(tmp_path), "--sensor", "vlp16",
             "--sequences", "01", "--frames", "2", "--seed", "1000"]  # fmt: skip
