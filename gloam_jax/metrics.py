@@ -22,6 +22,7 @@ from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
 
 from gloam_jax.errors import InputError
 from gloam_jax.io import as_poses, write_figure
@@ -34,6 +35,7 @@ __all__ = [
     "SegmentPlan",
     "ate",
     "evaluate",
+    "frame_rotation_drift",
     "kitti_rte",
     "path_lengths",
     "plot_evaluation",
@@ -406,6 +408,29 @@ def ate(
     )
 
 
+def frame_rotation_drift(
+    gt_poses: ArrayLike, est_poses: ArrayLike, *, source: Source = None
+) -> dict[str, Any]:
+    """Each frame's rotation error, split into drift and noise: the mean over frames of the
+    error of the estimated frame-to-frame motion (its rotation vector about the poses' own
+    x, y, z axes; for KITTI's camera-0 poses pitch, yaw, roll) and its standard deviation,
+    millidegrees a frame. A mean adds up over a drive (a per-frame bias b tilts the path by
+    n b after n frames); noise around it largely does not. (N, 4, 4) each, N >= 2."""
+    gt, est = _as_pair(gt_poses, est_poses, source)
+    if gt.shape[0] < 2:
+        raise InputError(source, "frame-to-frame errors need at least 2 poses")
+    d_gt = np.linalg.inv(gt[:-1]) @ gt[1:]
+    d_est = np.linalg.inv(est[:-1]) @ est[1:]
+    err = np.linalg.inv(d_gt) @ d_est
+    mdeg = Rotation.from_matrix(err[:, :3, :3]).as_rotvec(degrees=True) * 1e3
+    std = mdeg.std(axis=0, ddof=1) if len(mdeg) > 1 else np.zeros(3)
+    return {
+        "mean_mdeg": [float(v) for v in mdeg.mean(axis=0)],
+        "std_mdeg": [float(v) for v in std],
+        "num_frames": int(len(mdeg)),
+    }
+
+
 def evaluate(
     gt_poses: ArrayLike,
     est_poses: ArrayLike,
@@ -418,14 +443,15 @@ def evaluate(
     """KITTI RTE and aligned ATE of (N, 4, 4) trajectories in one JSON-ready dict.
 
     Keys: those of :meth:`RteResult.to_dict`, ``ate`` (:meth:`AteResult.to_dict`),
-    ``num_poses`` and ``path_length_m`` (ground-truth path length); ``precision`` as for
-    :func:`kitti_rte`.
+    ``frame_rotation`` (:func:`frame_rotation_drift`), ``num_poses`` and ``path_length_m``
+    (ground-truth path length); ``precision`` as for :func:`kitti_rte`.
     """
     gt, est = _as_pair(gt_poses, est_poses, source)
     rte = kitti_rte(gt, est, step=step, lengths=lengths, precision=precision, source=source)
     return {
         **rte.to_dict(),
         "ate": ate(gt, est, align=True, source=source).to_dict(),
+        "frame_rotation": frame_rotation_drift(gt, est, source=source),
         "num_poses": int(gt.shape[0]),
         "path_length_m": float(_distances(gt)[-1]),
     }

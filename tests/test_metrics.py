@@ -15,6 +15,7 @@ from gloam_jax.metrics import (
     DEFAULT_LENGTHS,
     ate,
     evaluate,
+    frame_rotation_drift,
     kitti_rte,
     path_lengths,
     plot_evaluation,
@@ -339,6 +340,36 @@ def test_evaluate_combines_everything() -> None:
     assert out["path_length_m"] == pytest.approx(1000.0)
     assert out["t_err_percent"] == kitti_rte(gt, est).t_err_percent
     assert json.loads(json.dumps(out)) == out
+
+
+def _rot_x(a: np.ndarray) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    R = np.zeros((len(a), 3, 3))
+    R[:, 0, 0] = 1.0
+    R[:, 1, 1], R[:, 1, 2], R[:, 2, 1], R[:, 2, 2] = c, -s, s, c
+    return R
+
+
+def test_frame_rotation_drift_splits_a_bias_from_noise() -> None:
+    """A constant extra pitch (about x) of 0.01 deg per frame is a 10 mdeg mean with no
+    spread; zero-mean noise about y is spread with a mean near 0."""
+    gt = _curvy(401, 0.7, seed=3)
+    rel = np.linalg.inv(gt[:-1]) @ gt[1:]
+    extra = np.tile(np.eye(4), (len(rel), 1, 1))
+    extra[:, :3, :3] = _rot_x(np.full(len(rel), np.deg2rad(0.01)))
+    out = [gt[0]]
+    for r in rel @ extra:
+        out.append(out[-1] @ r)
+    drift = frame_rotation_drift(gt, np.stack(out))
+    np.testing.assert_allclose(drift["mean_mdeg"], [10.0, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(drift["std_mdeg"], [0.0, 0.0, 0.0], atol=1e-6)
+    assert drift["num_frames"] == 400
+    noisy = frame_rotation_drift(gt, _noisy(gt, seed=4))  # 1e-3 rad (57 mdeg) about y
+    assert noisy["std_mdeg"][1] == pytest.approx(57.3, rel=0.1)
+    assert abs(noisy["mean_mdeg"][1]) < 3 * 57.3 / np.sqrt(400)
+    assert evaluate(gt, np.stack(out))["frame_rotation"] == drift
+    with pytest.raises(InputError, match="at least 2 poses"):
+        frame_rotation_drift(gt[:1], gt[:1], source="est.txt")
 
 
 def test_plot_evaluation_writes_png(tmp_path: Path) -> None:
