@@ -1,10 +1,13 @@
-"""Per-frame rotation error of each run on the VLP-16 long validation cells: the mean (a bias
-that drifts) and the spread (noise that averages out), about each camera axis.
+"""Per-frame rotation error of each run on the VLP-16 long validation cells: its mean (a bias
+that drifts) and spread (noise that does not add up), about each camera axis
+(``gloam_jax.metrics.frame_rotation_drift``), beside each run's t_err; a table and a scatter.
 
-KITTI's scored poses are camera-0 poses (x right, y down, z forward), so the rotation vector's
-x part is pitch, y yaw, z roll. Reads make_tables' runs under --out; writes pitch_bias.md.
+KITTI's scored poses are camera-0 poses (x right, y down, z forward): x is pitch, y yaw, z roll.
+Reads make_tables' runs under OUT; writes NAME.md and NAME.png next to this script.
 
     python experiments/vlp16_drawn/pitch_bias.py results/vlp16_model
+    python experiments/vlp16_drawn/pitch_bias.py results/vlp16_fresh --draws long_d2,long_d4 \
+        --name ../vlp16_fresh/pitch_bias
 """
 
 from __future__ import annotations
@@ -14,62 +17,75 @@ import glob
 import json
 from pathlib import Path
 
-import numpy as np
-from scipy.spatial.transform import Rotation
+import matplotlib
 
-from gloam_jax.io import read_kitti_poses
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from gloam_jax.io import read_kitti_poses  # noqa: E402
+from gloam_jax.metrics import frame_rotation_drift  # noqa: E402
 
 WORLDS = ("402", "406", "407", "408")
-DRAWS = ("long", "long_d1")
 
 
-def frame_errors(est: np.ndarray, gt: np.ndarray) -> np.ndarray:
-    """Rotation error (F-1, 3) of each frame's motion, millidegrees, about camera x, y, z."""
-    d_est = np.linalg.inv(est[:-1]) @ est[1:]
-    d_gt = np.linalg.inv(gt[:-1]) @ gt[1:]
-    err = np.linalg.inv(d_gt) @ d_est
-    return Rotation.from_matrix(err[:, :3, :3]).as_rotvec(degrees=True) * 1e3
+def runs(out: Path, draws: list[str]):
+    """(cell, run name, drift dict, t_err %) of every scored run under ``out``."""
+    labels = sorted(p.name for p in out.iterdir() if p.is_dir())
+    for world in WORLDS:
+        for draw in draws:
+            for label in (x for x in labels if x == "GICP" or x.startswith("GLOAM")):
+                for run in map(Path, sorted(glob.glob(f"{out}/{label}/*/{draw}-*/{world}"))):
+                    metrics = run / "metrics.json"
+                    scored = json.loads(metrics.read_text()) if metrics.is_file() else {}
+                    if "t_err_percent" not in scored:  # not finished, or not scored yet
+                        continue
+                    drift = frame_rotation_drift(
+                        read_kitti_poses(run / f"{world}_gt_kitti.txt"),
+                        read_kitti_poses(run / f"{world}_poses_kitti.txt"),
+                    )
+                    model = run.parent.parent.name
+                    name = label if model == "-" else f"{label} {model}"
+                    yield f"{world} {draw}", name, drift, scored["t_err_percent"]
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("out", type=Path, help="make_tables' --out")
+    parser.add_argument("--draws", default="long,long_d1", help="data folders (draws)")
+    parser.add_argument("--name", default="pitch_bias", help="output stem, beside this script")
     args = parser.parse_args()
-    labels = sorted(p.name for p in args.out.iterdir() if p.is_dir())
-    labels = [x for x in labels if x == "GICP" or x.startswith("GLOAM")]
+    rows = list(runs(args.out, args.draws.split(",")))
     lines = [
-        f"Per-frame rotation error on the VLP-16 long validation cells ({args.out}): mean / "
-        "sample std, millidegrees a frame; pitch is about camera x, yaw about y.",
+        f"Per-frame rotation error on the VLP-16 long validation cells ({args.out}): mean and "
+        "sample std, millidegrees a frame; pitch is about camera x.",
         "",
         "| cell | run | pitch mean | yaw mean | roll mean | pitch std | t_err (%) |",
         "|---|---|---|---|---|---|---|",
     ]
-    for world in WORLDS:
-        for draw in DRAWS:
-            for label in labels:
-                for run in sorted(glob.glob(f"{args.out}/{label}/*/{draw}-*/{world}")):
-                    run = Path(run)
-                    metrics = run / "metrics.json"
-                    t_err = (
-                        json.loads(metrics.read_text()).get("t_err_percent")
-                        if metrics.is_file()
-                        else None
-                    )
-                    if t_err is None:  # a run not finished, or not scored yet
-                        continue
-                    e = frame_errors(
-                        read_kitti_poses(run / f"{world}_poses_kitti.txt"),
-                        read_kitti_poses(run / f"{world}_gt_kitti.txt"),
-                    )
-                    m, s = e.mean(0), e.std(0, ddof=1)
-                    model = run.parent.parent.name
-                    name = label if model == "-" else f"{label} {model}"
-                    lines.append(
-                        f"| {world} {draw} | {name} | {m[0]:+.2f} | {m[1]:+.2f} | {m[2]:+.2f} "
-                        f"| {s[0]:.1f} | {t_err:.3f} |"
-                    )
-    (Path(__file__).parent / "pitch_bias.md").write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    for cell, name, d, t_err in rows:
+        m, s = d["mean_mdeg"], d["std_mdeg"]
+        lines.append(
+            f"| {cell} | {name} | {m[0]:+.2f} | {m[1]:+.2f} | {m[2]:+.2f} | {s[0]:.1f} "
+            f"| {t_err:.3f} |"
+        )
+    pitch = np.array([abs(d["mean_mdeg"][0]) for _, _, d, _ in rows])
+    t_err = np.array([t for *_, t in rows])
+    r = float(np.corrcoef(pitch, t_err)[0, 1])
+    lines += ["", f"Correlation of |pitch mean| and t_err over {len(rows)} runs: {r:.3f}"]
+    stem = Path(__file__).parent / args.name
+    stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    fig, ax = plt.subplots(figsize=(5.5, 4))
+    for group in ("GICP", "GLOAM"):
+        pick = [i for i, (_, n, _, _) in enumerate(rows) if n.startswith(group)]
+        ax.scatter(pitch[pick], t_err[pick], s=14, label=group)
+    ax.set_xlabel("|mean pitch error| (mdeg a frame)")
+    ax.set_ylabel("t_err (%)")
+    ax.set_title(f"VLP-16 long drives: drift follows the pitch bias (r = {r:.2f})")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(stem.with_suffix(".png"), dpi=110)
+    print("\n".join(lines[-1:]))
 
 
 if __name__ == "__main__":
