@@ -35,6 +35,7 @@ __all__ = [
     "SegmentPlan",
     "ate",
     "evaluate",
+    "evaluate_without_rte",
     "frame_rotation_drift",
     "kitti_rte",
     "path_lengths",
@@ -454,6 +455,18 @@ def evaluate(
         "frame_rotation": frame_rotation_drift(gt, est, source=source),
         "num_poses": int(gt.shape[0]),
         "path_length_m": float(_distances(gt)[-1]),
+    }
+
+
+def evaluate_without_rte(
+    gt_poses: ArrayLike, est_poses: ArrayLike, problem: str, *, source: Source = None
+) -> dict[str, Any]:
+    """What :func:`evaluate` gives of a path too short for the devkit's segments (``problem``
+    says why, as ``rte_unavailable``): ``ate`` and ``frame_rotation``."""
+    return {
+        "rte_unavailable": problem,
+        "ate": ate(gt_poses, est_poses, source=source).to_dict(),
+        "frame_rotation": frame_rotation_drift(gt_poses, est_poses, source=source),
     }
 
 

@@ -589,8 +589,7 @@ def write_run(files: RunFiles, odometry: Odometry, config: OdometryConfig,
             result.update(metrics.evaluate(gt, T_cam))
             metrics.plot_evaluation(gt, T_cam, None, plot, title=f"sequence {name}")
         except InputError as err:  # too short for the devkit's segments: ATE only
-            result["rte_unavailable"] = err.problem
-            result["ate"] = metrics.ate(gt, T_cam).to_dict()
+            result.update(metrics.evaluate_without_rte(gt, T_cam, err.problem))
             metrics.plot_trajectory(T_cam, gt, plot, f"{name}: RTE unavailable ({err.problem})")
     else:
         metrics.plot_trajectory(T_cam, None, plot, f"{name} (no ground truth)")

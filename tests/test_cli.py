@@ -118,6 +118,8 @@ def test_eval_falls_back_to_ate_on_a_short_path(tmp_path):
     metrics = json.loads((tmp_path / "m.json").read_text())
     assert "no segment fits" in metrics["rte_unavailable"]
     assert 0.03 < metrics["ate"]["rmse"] < 0.1  # the 0.1 m sine, less what alignment absorbs
+    drift = metrics["frame_rotation"]  # the sine moves, never turns: no rotation error
+    assert drift["num_frames"] == 29 and np.abs(drift["mean_mdeg"]).max() < 1e-6
     assert (tmp_path / "p.png").stat().st_size > 10_000
 
 

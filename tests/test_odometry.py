@@ -396,6 +396,7 @@ def test_gloam_run_writes_the_run_folder(sim_sequence, tmp_path):
     )
     metrics = json.loads((run / "metrics.json").read_text())
     assert "rte_unavailable" in metrics and metrics["ate"]["rmse"] < 0.2
+    assert metrics["frame_rotation"]["num_frames"] == 7
     assert metrics["num_frames"] == 8 and metrics["median_ms_per_frame"] > 0
     assert load_config(run / "config.yaml") == OdometryConfig()
     # The summary and metrics.json say how the scans were deskewed.

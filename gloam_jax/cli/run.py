@@ -62,10 +62,7 @@ def eval_(
     except InputError as err:  # a path too short for the devkit's segments: ATE only, as run
         if len(gt_poses) < 2 or "segment" not in err.problem:
             raise
-        result = {
-            "rte_unavailable": err.problem,
-            "ate": metrics.ate(gt_poses, est_poses, source=str(est)).to_dict(),
-        }
+        result = metrics.evaluate_without_rte(gt_poses, est_poses, err.problem, source=str(est))
         console.print(f"RTE unavailable ({err.problem}); ATE only")
     else:
         console.print(metrics_table(result, f"{est.name} vs {gt.name}"))
