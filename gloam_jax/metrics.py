@@ -462,11 +462,12 @@ def evaluate_without_rte(
     gt_poses: ArrayLike, est_poses: ArrayLike, problem: str, *, source: Source = None
 ) -> dict[str, Any]:
     """What :func:`evaluate` gives of a path too short for the devkit's segments (``problem``
-    says why, as ``rte_unavailable``): ``ate`` and ``frame_rotation``."""
+    says why, as ``rte_unavailable``): ``ate`` and ``frame_rotation`` (None for one pose)."""
+    gt, est = _as_pair(gt_poses, est_poses, source)
     return {
         "rte_unavailable": problem,
-        "ate": ate(gt_poses, est_poses, source=source).to_dict(),
-        "frame_rotation": frame_rotation_drift(gt_poses, est_poses, source=source),
+        "ate": ate(gt, est, source=source).to_dict(),
+        "frame_rotation": frame_rotation_drift(gt, est) if len(gt) > 1 else None,
     }
 
 

@@ -15,6 +15,7 @@ from gloam_jax.metrics import (
     DEFAULT_LENGTHS,
     ate,
     evaluate,
+    evaluate_without_rte,
     frame_rotation_drift,
     kitti_rte,
     path_lengths,
@@ -370,6 +371,8 @@ def test_frame_rotation_drift_splits_a_bias_from_noise() -> None:
     assert evaluate(gt, np.stack(out))["frame_rotation"] == drift
     with pytest.raises(InputError, match="at least 2 poses"):
         frame_rotation_drift(gt[:1], gt[:1], source="est.txt")
+    one = evaluate_without_rte(gt[:1], gt[:1], "too short")
+    assert one["frame_rotation"] is None and one["ate"]["rmse"] == 0.0
 
 
 def test_plot_evaluation_writes_png(tmp_path: Path) -> None:
