@@ -39,13 +39,15 @@ def main() -> None:
     parser.add_argument("models", nargs="+")
     parser.add_argument("--cache", required=True)
     parser.add_argument("--rounds", type=int, help="GICP rounds per pair instead of the config's")
+    parser.add_argument("--map-scans", type=int, help="scans in each pair's map")
+    parser.add_argument("--map-stride", type=int, help="frames between the map's scans")
     args = parser.parse_args()
     config = load_config(args.config, TrainConfig)
-    if args.rounds is not None:
-        config = dataclasses.replace(
-            config, batch=dataclasses.replace(config.batch, rounds=args.rounds)
-        )
-    print(f"rounds {config.batch.rounds}")
+    batch = {"rounds": args.rounds, "map_scans": args.map_scans, "map_stride": args.map_stride}
+    batch = {k: v for k, v in batch.items() if v is not None}
+    config = dataclasses.replace(config, batch=dataclasses.replace(config.batch, **batch))
+    b = config.batch
+    print(f"rounds {b.rounds}, map_scans {b.map_scans}, map_stride {b.map_stride}")
     for name in ["gicp", *args.models]:
         model = args.models[0] if name == "gicp" else name
         cfg = dataclasses.replace(config, init_model=model, validation=())
