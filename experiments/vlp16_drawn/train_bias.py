@@ -2,7 +2,7 @@
 GICP and trained models: does the training data show the pitch bias seen on long drives?
 
     python experiments/vlp16_drawn/train_bias.py experiments/vlp16_drawn/train_vlp16_drawn.yaml \
-        runs/vlp16d_s0/model.npz [...] --cache runs/vlp16d_cache
+        runs/vlp16d_s0/model.npz [...] --cache runs/vlp16d_cache [--batch map_scans=10 ...]
 """
 
 from __future__ import annotations
@@ -38,16 +38,18 @@ def main() -> None:
     parser.add_argument("config")
     parser.add_argument("models", nargs="+")
     parser.add_argument("--cache", required=True)
-    parser.add_argument("--rounds", type=int, help="GICP rounds per pair instead of the config's")
-    parser.add_argument("--map-scans", type=int, help="scans in each pair's map")
-    parser.add_argument("--map-stride", type=int, help="frames between the map's scans")
+    parser.add_argument(
+        "--batch", action="append", default=[], metavar="KEY=INT",
+        help="a batch setting instead of the config's (rounds, map_scans, map_stride, "
+        "max_source_points)",
+    )  # fmt: skip
     args = parser.parse_args()
     config = load_config(args.config, TrainConfig)
-    batch = {"rounds": args.rounds, "map_scans": args.map_scans, "map_stride": args.map_stride}
-    batch = {k: v for k, v in batch.items() if v is not None}
+    batch = {k: int(v) for k, v in (item.split("=", 1) for item in args.batch)}
     config = dataclasses.replace(config, batch=dataclasses.replace(config.batch, **batch))
     b = config.batch
-    print(f"rounds {b.rounds}, map_scans {b.map_scans}, map_stride {b.map_stride}")
+    print(f"rounds {b.rounds}, map_scans {b.map_scans}, map_stride {b.map_stride}, "
+          f"max_source_points {b.max_source_points}")  # fmt: skip
     for name in ["gicp", *args.models]:
         model = args.models[0] if name == "gicp" else name
         cfg = dataclasses.replace(config, init_model=model, validation=())
