@@ -115,6 +115,8 @@ def test_eval_falls_back_to_ate_on_a_short_path(tmp_path):
     )
     assert result.exit_code == 0, result.output
     assert "RTE unavailable" in result.output and "ATE" in result.output
+    said = " ".join(result.output.split())  # rich wraps at the terminal's width
+    assert "drift +0.00 +0.00 +0.00 mdeg" in said  # the error moves, never turns
     metrics = json.loads((tmp_path / "m.json").read_text())
     assert "no segment fits" in metrics["rte_unavailable"]
     assert 0.03 < metrics["ate"]["rmse"] < 0.1  # the 0.1 m sine, less what alignment absorbs

@@ -202,6 +202,23 @@ def metrics_table(result: dict, title: str) -> Table:
     return table
 
 
+def error_lines(result: dict) -> list[str]:
+    """The ATE and per-frame rotation drift lines of an evaluation (``metrics.evaluate``)."""
+    lines = []
+    if "ate" in result:
+        ate = result["ate"]
+        lines.append(f"ATE (SE(3)-aligned): rmse {ate['rmse']:.3f} m, max {ate['max']:.3f} m")
+    drift = result.get("frame_rotation")
+    if drift is not None:
+        mean = " ".join(f"{v:+.2f}" for v in drift["mean_mdeg"])
+        spread = " ".join(f"{v:.1f}" for v in drift["std_mdeg"])
+        lines.append(
+            f"rotation error a frame about x y z (KITTI: pitch yaw roll): drift {mean} mdeg "
+            f"(mean), noise {spread} mdeg (std)"
+        )
+    return lines
+
+
 def write_json(path: Path, data: dict) -> None:
     from gloam_jax.io import write_atomic
 

@@ -19,6 +19,7 @@ from gloam_jax.cli.common import (
     app,
     cache_dir,
     console,
+    error_lines,
     frame_progress,
     mark_latest,
     metrics_table,
@@ -66,8 +67,8 @@ def eval_(
         console.print(f"RTE unavailable ({err.problem}); ATE only")
     else:
         console.print(metrics_table(result, f"{est.name} vs {gt.name}"))
-    ate = result["ate"]
-    console.print(f"ATE (SE(3)-aligned): rmse {ate['rmse']:.3f} m, max {ate['max']:.3f} m")
+    for line in error_lines(result):
+        console.print(line)
     if json_out is not None:
         write_json(json_out, result)
     if plot is not None:
@@ -148,8 +149,8 @@ def run_odometry(
         console.print(metrics_table(result, f"{dataset.name}: estimate vs ground truth"))
     elif "rte_unavailable" in result:
         console.print(f"RTE unavailable ({result['rte_unavailable']})")
-    if "ate" in result:
-        console.print(f"ATE (SE(3)-aligned): rmse {result['ate']['rmse']:.3f} m")
+    for line in error_lines(result):
+        console.print(line)
     if result["skipped_frames"]:
         skipped = ", ".join(map(str, result["skipped_frames"]))
         console.print(f"  skipped (bad scans, motion prior kept): frame(s) {skipped}")
