@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from gloam_jax.errors import InputError
-from gloam_jax.io import as_poses, write_figure
+from gloam_jax.io import as_poses, frame_motions, write_figure
 
 __all__ = [
     "DEFAULT_LENGTHS",
@@ -420,9 +420,7 @@ def frame_rotation_drift(
     gt, est = _as_pair(gt_poses, est_poses, source)
     if gt.shape[0] < 2:
         raise InputError(source, "frame-to-frame errors need at least 2 poses")
-    d_gt = np.linalg.inv(gt[:-1]) @ gt[1:]
-    d_est = np.linalg.inv(est[:-1]) @ est[1:]
-    err = np.linalg.inv(d_gt) @ d_est
+    err = np.linalg.inv(frame_motions(gt)) @ frame_motions(est)
     mdeg = Rotation.from_matrix(err[:, :3, :3]).as_rotvec(degrees=True) * 1e3
     std = mdeg.std(axis=0, ddof=1) if len(mdeg) > 1 else np.zeros(3)
     return {

@@ -588,7 +588,7 @@ def write_run(files: RunFiles, odometry: Odometry, config: OdometryConfig,
         try:
             result.update(metrics.evaluate(gt, T_cam))
             metrics.plot_evaluation(gt, T_cam, None, plot, title=f"sequence {name}")
-        except InputError as err:  # too short for the devkit's segments: ATE only
+        except InputError as err:  # too short for the devkit's segments: no RTE
             result.update(metrics.evaluate_without_rte(gt, T_cam, err.problem))
             metrics.plot_trajectory(T_cam, gt, plot, f"{name}: RTE unavailable ({err.problem})")
     else:

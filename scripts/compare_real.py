@@ -52,8 +52,7 @@ def small_gicp_odometry(scans: list[np.ndarray]) -> np.ndarray:
 
 def step_differences(ours: np.ndarray, theirs: np.ndarray) -> dict[str, float]:
     """Frame-to-frame translation (cm) and rotation (deg) differences of two (N, 4, 4) runs."""
-    a = np.linalg.inv(ours[:-1]) @ ours[1:]
-    b = np.linalg.inv(theirs[:-1]) @ theirs[1:]
+    a, b = io.frame_motions(ours), io.frame_motions(theirs)
     dt = 100 * np.linalg.norm(a[:, :3, 3] - b[:, :3, 3], axis=1)
     rel = np.einsum("nji,njk->nik", a[:, :3, :3], b[:, :3, :3])
     cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)

@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from gloam_jax.config import load_config
+from gloam_jax.io import frame_motions
 from gloam_jax.models import load_model
 from gloam_jax.training.config import TrainConfig
 from gloam_jax.training.problem import setup, trainable_params
@@ -27,7 +28,7 @@ def pair_errors(T_rel: np.ndarray, windows) -> list[np.ndarray]:
         est = T_rel[w.start : w.stop]
         Tr, Tr_inv = w.Tr_cam_velo, np.linalg.inv(w.Tr_cam_velo)
         d_est = Tr @ est @ Tr_inv  # camera-0 frame motion of each pair
-        d_gt = np.linalg.inv(w.gt_cam[:-1]) @ w.gt_cam[1:]
+        d_gt = frame_motions(w.gt_cam)
         err = np.linalg.inv(d_gt) @ d_est
         out.append(Rotation.from_matrix(err[:, :3, :3]).as_rotvec(degrees=True) * 1e3)
     return out

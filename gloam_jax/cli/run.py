@@ -60,11 +60,11 @@ def eval_(
         raise InputError(est, f"{len(est_poses)} poses vs {len(gt_poses)} in {gt}")
     try:
         result = metrics.evaluate(gt_poses, est_poses, precision=precision, source=str(est))
-    except InputError as err:  # a path too short for the devkit's segments: ATE only, as run
+    except InputError as err:  # a path too short for the devkit's segments: no RTE, as run
         if len(gt_poses) < 2 or "segment" not in err.problem:
             raise
         result = metrics.evaluate_without_rte(gt_poses, est_poses, err.problem, source=str(est))
-        console.print(f"RTE unavailable ({err.problem}); ATE only")
+        console.print(f"RTE unavailable ({err.problem})")
     else:
         console.print(metrics_table(result, f"{est.name} vs {gt.name}"))
     for line in error_lines(result):

@@ -18,6 +18,7 @@ from gloam_jax.io.kitti import (
 from gloam_jax.io.poses import (
     as_poses,
     cam_to_lidar_poses,
+    frame_motions,
     kitti_pose_text,
     lidar_to_cam_poses,
     read_kitti_poses,
@@ -32,6 +33,7 @@ __all__ = [
     "KittiSequence",
     "as_poses",
     "cam_to_lidar_poses",
+    "frame_motions",
     "kitti_pose_text",
     "lidar_to_cam_poses",
     "read_calib",

@@ -172,6 +172,13 @@ def write_tum_poses(path: PathLike, times: np.ndarray, poses: np.ndarray) -> Non
     write_atomic(path, tum_pose_text(times, poses, path))
 
 
+def frame_motions(poses: ArrayLike) -> np.ndarray:
+    """The motion from each pose to the next, ``inv(T_k) @ T_k+1``, of poses ``(N, 4, 4)``:
+    ``(N - 1, 4, 4)`` float64, in the earlier pose's frame."""
+    T = np.asarray(poses, dtype=np.float64)
+    return np.linalg.inv(T[:-1]) @ T[1:]
+
+
 def cam_to_lidar_poses(P_cam: np.ndarray, Tr_cam_velo: np.ndarray) -> np.ndarray:
     """Camera-0 poses ``(..., 4, 4)`` -> LiDAR poses ``inv(Tr) @ P @ Tr`` (float64)."""
     P = np.asarray(P_cam, dtype=np.float64)

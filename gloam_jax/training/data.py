@@ -109,11 +109,6 @@ def _prepare_scan(seq, i, config, pca, backbone, velocity, frame_dt) -> Prepared
     return PreparedScan(points, np.asarray(values)[:n], np.asarray(vectors)[:n], pca_features)
 
 
-def _relative_motions(gt_lidar: np.ndarray) -> np.ndarray:
-    """Ground-truth LiDAR motions from each scan to the next (n - 1, 4, 4)."""
-    return np.linalg.inv(gt_lidar[:-1]) @ gt_lidar[1:]
-
-
 def _velocities(rel_gt: np.ndarray) -> np.ndarray:
     """se(3) motion per frame (n, 6) from the (n - 1, 4, 4) ground-truth frame-to-frame
     motions; frame 0 takes frame 1's."""
@@ -144,7 +139,7 @@ def prepare_scans(
     if pca is not None and backbone is None:
         raise InputError(None, "a model needs the backbone that makes its features")
     gt_cam = gt_cam[frames.start : frames.stop]
-    velocity = _velocities(_relative_motions(io.cam_to_lidar_poses(gt_cam, seq.Tr_cam_velo)))
+    velocity = _velocities(io.frame_motions(io.cam_to_lidar_poses(gt_cam, seq.Tr_cam_velo)))
     times = seq.times
     scans = []
     for k, i in enumerate(frames):
@@ -165,7 +160,7 @@ def prepare_pairs(window: PreparedWindow, config: BatchConfig) -> PreparedPairs:
     """
     scans, name = window.scans, window.name
     gt_lidar = io.cam_to_lidar_poses(window.gt_cam, window.Tr_cam_velo)
-    rel_gt = _relative_motions(gt_lidar)
+    rel_gt = io.frame_motions(gt_lidar)
     M = config.map_scans
     rng = np.random.default_rng(config.seed)
     out = {key: [] for key in _PER_PAIR}
