@@ -37,8 +37,10 @@ def main(argv: list[str] | None = None) -> None:
     eig = eig._replace(w2=a * eig.w2, b2=a * eig.b2 + (1.0 - a) * plane_output(model.eps))
     conv = conv._replace(w2=a * conv.w2, b2=a * conv.b2)
     sha1 = hashlib.sha1(args.model.read_bytes()).hexdigest()
-    provenance = {**model.provenance, "shrunk_to_gicp": {"source": str(args.model),
-                                                         "source_sha1": sha1, "factor": a}}
+    provenance = {
+        **model.provenance,
+        "shrunk_to_gicp": {"source": str(args.model), "source_sha1": sha1, "factor": a},
+    }
     provenance.pop("test_scores", None)  # the source's test scores are not this file's
     save_model(args.out, with_mlps(model, conv, eig, provenance))
     print(f"{args.out}: {args.model} shrunk to GICP by a = {a:g}")
