@@ -6,6 +6,7 @@ import jax
 import numpy as np
 import pytest
 
+from gloam_jax import geometry as geo
 from gloam_jax import io
 from gloam_jax.errors import InputError
 from gloam_jax.learned import Learned
@@ -252,3 +253,47 @@ def test_training_scans_take_the_grid_backbone_s_neighbourhoods(sim_sequence):
     assert error(centres.neighbours).max() <= 1
     # The deskew moved some neighbourhoods here, so a second query would be told apart.
     assert error(again).max() > 10
+
+
+def _biased_motions(window, bias_lidar: np.ndarray) -> np.ndarray:
+    """The window's ground-truth LiDAR motions, each turned by the rotation vector
+    ``bias_lidar`` (3,) in its own frame: a constant per-pair rotation error."""
+    from scipy.spatial.transform import Rotation
+
+    gt = io.frame_motions(io.cam_to_lidar_poses(window.gt_cam, window.Tr_cam_velo))
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(bias_lidar).as_matrix()
+    return gt @ turn
+
+
+def test_window_drift_scales_a_pitch_and_yaw_bias_to_a_long_path(data):
+    w = data.windows[0]
+    for bias, expected in (([0.0, 1e-3, 0.0], 1e-3), ([0.0, 3e-4, -4e-4], 5e-4),
+                           ([2e-3, 0.0, 0.0], 0.0), ([0.0, 0.0, 0.0], 0.0)):  # fmt: skip
+        T_rel = jax.numpy.asarray(_biased_motions(w, np.array(bias)), jax.numpy.float32)
+        drift = float(batch.window_drift(T_rel, [w], 400)[0])
+        # 400 frames: the bias b moves the path's end by 200 * b of its length; roll does not.
+        assert drift == pytest.approx(200 * expected, abs=2e-4), bias
+    t_plain, _ = batch.window_errors(T_rel, [w])
+    t_drift, _ = batch.window_errors(T_rel, [w], drift_frames=400)
+    assert float(t_drift[0]) == pytest.approx(float(t_plain[0]), abs=1e-7)  # no bias: equal
+
+
+def test_window_drift_gradient_matches_finite_differences(data):
+    w = data.windows[0]
+
+    def drift(pitch):
+        gt = io.frame_motions(io.cam_to_lidar_poses(w.gt_cam, w.Tr_cam_velo))
+        turn = geo.make_transform(geo.so3_exp(jax.numpy.stack([0.0, pitch, 2e-4])), np.zeros(3))
+        return batch.window_drift(jax.numpy.asarray(gt, jax.numpy.float32) @ turn, [w], 100)[0]
+
+    x, h = 1e-3, 1e-4
+    fd = (float(drift(x + h)) - float(drift(x - h))) / (2 * h)
+    # d/dp of 50 * |(p, 2e-4)| at p = 1e-3: 50 * p / |(p, 2e-4)| = 49.03
+    assert float(jax.grad(drift)(x)) == pytest.approx(fd, rel=2e-2)
+    assert float(jax.grad(drift)(x)) == pytest.approx(50 * x / np.hypot(x, 2e-4), rel=2e-2)
+
+
+def test_drift_frames_must_not_be_negative():
+    with pytest.raises(InputError, match="drift_frames must be >= 0"):
+        batch.BatchConfig(drift_frames=-1)

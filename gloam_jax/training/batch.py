@@ -33,10 +33,16 @@ from jax.typing import ArrayLike
 from gloam_jax import geometry as geo
 from gloam_jax.errors import InputError
 from gloam_jax.gicp import Cloud, GICPConfig, gicp_round
-from gloam_jax.io import lidar_to_cam_poses
+from gloam_jax.io import cam_to_lidar_poses, frame_motions, lidar_to_cam_poses
 from gloam_jax.learned import Learned, attributes
 from gloam_jax.training.head import HeadData, head_features
-from gloam_jax.training.losses import TRAINING_FRACTIONS, SegmentPlan, chain, segment_errors
+from gloam_jax.training.losses import (
+    TRAINING_FRACTIONS,
+    SegmentPlan,
+    chain,
+    safe_norm,
+    segment_errors,
+)
 from gloam_jax.training.objective import objective
 
 
@@ -65,6 +71,10 @@ class BatchConfig:
     # ground-truth poses, as the odometry registers to its last keyframes.
     map_scans: int = 1
     map_stride: int = 2
+    # With N > 0 each window's t_err also counts the drift its pairs' mean rotation error about
+    # the LiDAR's y and z axes (pitch, yaw) would add over a path of N frames (window_errors):
+    # long segments see a per-pair bias that short windows hardly do. 0: the segments alone.
+    drift_frames: int = 0
     gicp: GICPConfig = field(default_factory=_batch_gicp)
 
     MOVED: ClassVar[dict[str, str]] = {
@@ -80,6 +90,8 @@ class BatchConfig:
                 "rounds, gicp.num_candidates, max_source_points, map_scans and map_stride "
                 "must be >= 1",
             )
+        if self.drift_frames < 0:
+            raise InputError(None, f"drift_frames must be >= 0, got {self.drift_frames}")
         object.__setattr__(self, "segment_fractions", tuple(self.segment_fractions))
 
 
@@ -278,14 +290,37 @@ def trajectories(T_rel: Array, windows: list[Window]) -> list[Array]:
     return [lidar_to_cam_poses(chain(T_rel[w.start : w.stop]), w.Tr_cam_velo) for w in windows]
 
 
-def window_errors(T_rel: Array, windows: list[Window]) -> tuple[Array, Array]:
+def window_errors(
+    T_rel: Array, windows: list[Window], drift_frames: int = 0
+) -> tuple[Array, Array]:
     """Per-window relative errors (W,) each: translation (fraction) and rotation (rad/m),
-    the devkit's rule over each window's scaled segments (the training loss's terms)."""
+    the devkit's rule over each window's scaled segments (the training loss's terms). With
+    ``drift_frames`` N > 0 the translation error adds :func:`window_drift` over N frames."""
     t_err, r_err = [], []
     for w, T_est in zip(windows, trajectories(T_rel, windows), strict=True):
         t, r = segment_errors(T_est, jnp.asarray(w.gt_cam, T_est.dtype), w.plan)
         t_err.append(jnp.mean(t)), r_err.append(jnp.mean(r))
-    return jnp.stack(t_err), jnp.stack(r_err)
+    t_err = jnp.stack(t_err)
+    if drift_frames:
+        t_err = t_err + window_drift(T_rel, windows, drift_frames)
+    return t_err, jnp.stack(r_err)
+
+
+def window_drift(T_rel: Array, windows: list[Window], frames: int) -> Array:
+    """Per window (W,): the translational error (a fraction) that its pairs' mean rotation
+    error b (rad a pair, about the LiDAR's y and z axes) would add over ``frames`` N frames.
+    A constant heading error growing by b a frame moves the end of an N-frame path sideways
+    by about b N^2 / 2 frame lengths, N / 2 * |b| of its length. Roll (about x, the direction
+    of travel) moves it little, so it is left out."""
+    drift = []
+    for w in windows:
+        T_est = T_rel[w.start : w.stop]
+        # The ground truth's motions in the LiDAR frame, as T_rel's (host-side constants).
+        T_gt = frame_motions(cam_to_lidar_poses(w.gt_cam, w.Tr_cam_velo))
+        R_gt_T = jnp.asarray(np.swapaxes(T_gt[:, :3, :3], -1, -2), T_est.dtype)
+        b = jnp.mean(geo.so3_log(geo.matmul(R_gt_T, T_est[:, :3, :3])), axis=0)
+        drift.append(0.5 * frames * safe_norm(b[1:]))
+    return jnp.stack(drift)
 
 
 def window_t_err(
@@ -295,7 +330,7 @@ def window_t_err(
     terms of :func:`loss`. The pairs split over ``mesh`` (see :func:`register_sharded`)."""
     scans = with_head(learned, data.scans, data.head)
     T_rel = register_sharded(learned, scans, data.pairs, config, data.regularizer, mesh)
-    return window_errors(T_rel, data.windows)[0]
+    return window_errors(T_rel, data.windows, config.drift_frames)[0]
 
 
 def loss(
@@ -339,7 +374,7 @@ class Evaluator:
         def run(learned, scans, pairs, head):
             scans = with_head(learned, scans, head)
             T_rel = register_sharded(learned, scans, pairs, config, regularizer, mesh)
-            return (*window_errors(T_rel, windows), T_rel[: data.num_pairs])
+            return (*window_errors(T_rel, windows, config.drift_frames), T_rel[: data.num_pairs])
 
         self._run = jax.jit(run)
 

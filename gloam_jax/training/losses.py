@@ -84,7 +84,7 @@ def _trajectory(poses: ArrayLike, plan: SegmentPlan, what: str) -> Array:
     return poses
 
 
-def _safe_norm(v: Array) -> Array:
+def safe_norm(v: Array) -> Array:
     """Norm over the last axis with a finite (zero) gradient at v = 0."""
     sq = jnp.sum(v * v, axis=-1)
     positive = sq > 0.0
@@ -98,7 +98,7 @@ def _rotation_angle(R: Array) -> Array:
     devkit's arccos of the trace, but arccos has an infinite slope at angle 0 (a perfect
     estimate), where this one's gradient stays finite.
     """
-    sin = 0.5 * _safe_norm(vee(R - jnp.swapaxes(R, -1, -2)))
+    sin = 0.5 * safe_norm(vee(R - jnp.swapaxes(R, -1, -2)))
     cos = 0.5 * (jnp.trace(R, axis1=-2, axis2=-1) - 1.0)
     return jnp.arctan2(sin, cos)
 
@@ -141,7 +141,7 @@ def segment_errors(T_est: ArrayLike, T_gt: ArrayLike, plan: SegmentPlan) -> tupl
     inv_est, inv_gt = _affine_inverse(jnp.stack([T_est, T_gt]))
     err = _matmul(_matmul(inv_est[last], T_est[first]), _matmul(inv_gt[first], T_gt[last]))
     lengths = jnp.asarray(plan.lengths, dtype)
-    return _safe_norm(err[:, :3, 3]) / lengths, _rotation_angle(err[:, :3, :3]) / lengths
+    return safe_norm(err[:, :3, 3]) / lengths, _rotation_angle(err[:, :3, :3]) / lengths
 
 
 def relative_translation_error(T_est: ArrayLike, T_gt: ArrayLike, plan: SegmentPlan) -> Array:
