@@ -5,6 +5,7 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from gloam_jax import geometry as geo
 from gloam_jax import io
@@ -258,8 +259,6 @@ def test_training_scans_take_the_grid_backbone_s_neighbourhoods(sim_sequence):
 def _biased_motions(window, bias_lidar: np.ndarray) -> np.ndarray:
     """The window's ground-truth LiDAR motions, each turned by the rotation vector
     ``bias_lidar`` (3,) in its own frame: a constant per-pair rotation error."""
-    from scipy.spatial.transform import Rotation
-
     gt = io.frame_motions(io.cam_to_lidar_poses(window.gt_cam, window.Tr_cam_velo))
     turn = np.eye(4)
     turn[:3, :3] = Rotation.from_rotvec(bias_lidar).as_matrix()

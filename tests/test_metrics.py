@@ -8,9 +8,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 from shared_data import shared_path
 
 from gloam_jax.errors import InputError
+from gloam_jax.io import frame_motions
 from gloam_jax.metrics import (
     DEFAULT_LENGTHS,
     ate,
@@ -343,21 +345,13 @@ def test_evaluate_combines_everything() -> None:
     assert json.loads(json.dumps(out)) == out
 
 
-def _rot_x(a: np.ndarray) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    R = np.zeros((len(a), 3, 3))
-    R[:, 0, 0] = 1.0
-    R[:, 1, 1], R[:, 1, 2], R[:, 2, 1], R[:, 2, 2] = c, -s, s, c
-    return R
-
-
 def test_frame_rotation_drift_splits_a_bias_from_noise() -> None:
     """A constant extra pitch (about x) of 0.01 deg per frame is a 10 mdeg mean with no
     spread; zero-mean noise about y is spread with a mean near 0."""
     gt = _curvy(401, 0.7, seed=3)
-    rel = np.linalg.inv(gt[:-1]) @ gt[1:]
+    rel = frame_motions(gt)
     extra = np.tile(np.eye(4), (len(rel), 1, 1))
-    extra[:, :3, :3] = _rot_x(np.full(len(rel), np.deg2rad(0.01)))
+    extra[:, :3, :3] = Rotation.from_rotvec([np.deg2rad(0.01), 0.0, 0.0]).as_matrix()
     out = [gt[0]]
     for r in rel @ extra:
         out.append(out[-1] @ r)

@@ -17,12 +17,12 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from gloam_jax import covariance as cov
 from gloam_jax.config import load_config
 from gloam_jax.datasets import open_dataset
 from gloam_jax.models import load_model
+from gloam_jax.neighbors import KdTree
 from gloam_jax.odometry import OdometryConfig
 from gloam_jax.preprocess import preprocess_scan
 
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> None:
         for label, model in models.items():
             points, f, _ = preprocess_scan(scan, None, config, pca=model.pca,
                                            features=model.backbone()(scan))  # fmt: skip
-            _, idx = cKDTree(points).query(points, config.num_neighbors)
+            idx, _ = KdTree(points).query(points, config.num_neighbors)
             _, vectors = cov.eigendecompose(cov.knn_covariances(points, idx))
             normal_z = np.abs(np.asarray(vectors)[:, 2, 0])  # smallest eigenvector's z
             values = np.asarray(cov.learned_values(model.eigenvalue(f), model.eps, None))
