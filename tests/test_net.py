@@ -13,8 +13,10 @@ from typer.testing import CliRunner
 from gloam_jax.cli import app
 from gloam_jax.errors import InputError
 from gloam_jax.features import fit_pca, get_backbone, intensity_warning
+from gloam_jax.features import net as net_module
 from gloam_jax.features.net import (
     CLASSES,
+    LocalAggregation,
     NetConfig,
     SegNet,
     class_index,
@@ -75,6 +77,31 @@ def test_backbone_shapes_rows_and_permutation_invariance(weights):
     assert backbone(scan[:5, :3]).shape == (5, 32)
     with pytest.raises(InputError, match="expected an"):
         backbone(scan[:, :2])
+
+
+def _attentive_pooling(layer, h, xyz, nbr):
+    """RandLA-Net's local aggregation as written in one piece: the reference."""
+    rel = xyz[nbr] - xyz[:, None, :]
+    enc = jax.nn.relu(
+        layer.position(np.concatenate([rel, np.linalg.norm(rel, axis=-1)[..., None]], -1))
+    )
+    fh = np.concatenate([enc, jax.nn.relu(layer.feature(h))[nbr]], axis=-1)
+    attention = jax.nn.softmax(layer.score(fh), axis=1)
+    return jax.nn.relu(layer.out(np.sum(attention * fh, axis=1)))
+
+
+@pytest.mark.parametrize("chunk_bytes", [1 << 21, 3000])
+def test_local_aggregation_in_chunks_is_the_one_piece_formula(monkeypatch, chunk_bytes):
+    # 3000 bytes: chunks of 5 rows (K = 8, 16 channels), 37 rows = 7 chunks and a remainder
+    monkeypatch.setattr(net_module, "_CHUNK_BYTES", chunk_bytes)
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(37, 3)).astype(np.float32)
+    h = rng.normal(size=(37, 8)).astype(np.float32)
+    nbr = cKDTree(xyz).query(xyz, 8)[1].astype(np.int32)
+    layer = LocalAggregation(8, 16, key=jax.random.key(3))
+    got = np.asarray(eqx.filter_jit(layer.__call__)(h, xyz, nbr))
+    assert got.shape == (37, 16)
+    np.testing.assert_allclose(got, np.asarray(_attentive_pooling(layer, h, xyz, nbr)), atol=1e-5)
 
 
 def test_networks_blind_to_intensity_or_to_its_units(tmp_path):

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -139,14 +140,43 @@ class LocalAggregation(eqx.Module):
         self.out = Dense(c_out, c_out, key=k4)
 
     def __call__(self, h: jax.Array, xyz: jax.Array, nbr: jax.Array) -> jax.Array:
-        rel = xyz[nbr] - xyz[:, None, :]  # (N, K, 3)
-        dist = jnp.sqrt(jnp.sum(rel * rel, axis=-1, keepdims=True))
-        enc = jax.nn.relu(self.position(jnp.concatenate([rel, dist], axis=-1)))
-        # Transform before gathering: N rows instead of N * K.
-        f = jax.nn.relu(self.feature(h))[nbr]
-        fh = jnp.concatenate([enc, f], axis=-1)  # (N, K, c_out)
-        attention = jax.nn.softmax(self.score(fh), axis=1)  # per channel, over neighbours
-        return jax.nn.relu(self.out(jnp.sum(attention * fh, axis=1)))
+        half = self.position.weight.shape[1]
+        # Transform before gathering: N rows instead of N * K. The attention score of the
+        # concatenation [enc, f] splits likewise: its f half is a per-point product, gathered.
+        f = jax.nn.relu(self.feature(h))
+        f_score = f @ self.score.weight[half:] + self.score.bias
+
+        def rows(i: jax.Array) -> jax.Array:
+            nb = nbr[i]  # (c, K)
+            rel = xyz[nb] - xyz[i][:, None, :]  # (c, K, 3)
+            dist = jnp.sqrt(jnp.sum(rel * rel, axis=-1, keepdims=True))
+            enc = jax.nn.relu(self.position(jnp.concatenate([rel, dist], axis=-1)))
+            score = enc @ self.score.weight[:half] + f_score[nb]  # (c, K, c_out)
+            attention = jax.nn.softmax(score, axis=1)  # per channel, over neighbours
+            pooled = jnp.concatenate(
+                [jnp.sum(attention[..., :half] * enc, axis=1),
+                 jnp.sum(attention[..., half:] * f[nb], axis=1)], axis=-1,
+            )  # fmt: skip
+            return jax.nn.relu(self.out(pooled))
+
+        edge_bytes = nbr.shape[1] * self.out.weight.shape[1] * 4
+        return in_chunks(rows, nbr.shape[0], max(1, _CHUNK_BYTES // edge_bytes))
+
+
+# The per-edge tensors (rows x K x channels) are evaluated this many bytes at a time, so they
+# stay in a core's L2 cache: whole, they were written to and read from memory several times,
+# and that, not the arithmetic, set the network's time on the CPU (experiments/net_chunks).
+_CHUNK_BYTES = 2 << 20
+
+
+def in_chunks(fn: Callable[[jax.Array], jax.Array], n: int, chunk: int) -> jax.Array:
+    """``fn`` of row indices (c,) -> (c, d), over rows 0..n-1 in chunks of ``chunk``
+    (``lax.map``; the last chunk repeats row n-1 to fill it): (n, d)."""
+    chunk = min(chunk, n)
+    m = -(-n // chunk) * chunk
+    index = jnp.minimum(jnp.arange(m, dtype=jnp.int32), n - 1).reshape(-1, chunk)
+    out = jax.lax.map(fn, index)
+    return out.reshape(m, out.shape[-1])[:n]
 
 
 class SegNet(eqx.Module):
@@ -261,6 +291,11 @@ def _forward(net: SegNet, x: NetInputs) -> tuple[jax.Array, jax.Array]:
 
 
 @eqx.filter_jit
+def _embedding(net: SegNet, x: NetInputs) -> jax.Array:
+    return embed(net.decode.weight, net.decode.bias, net.hidden(x))
+
+
+@eqx.filter_jit
 def _hidden(net: SegNet, x: NetInputs) -> jax.Array:
     return net.hidden(x)
 
@@ -285,21 +320,37 @@ def _scan_voxels(scan: np.ndarray, config: NetConfig) -> tuple[NetInputs, np.nda
     return build_inputs(xyz, scan_intensity(intensity, config), config), voxel, len(xyz)
 
 
+def _rows(values: jax.Array, m: int, voxel: np.ndarray) -> np.ndarray:
+    """Per-voxel ``values`` (>= m, d) -> float32 per raw row (N,) of ``voxel`` (-1: zeros)."""
+    values = np.asarray(values)[:m]
+    if voxel.min() >= 0:  # every row finite: one gather, np.take being the fast one
+        return np.take(values, voxel, axis=0)
+    out = np.zeros((len(voxel), values.shape[1]), np.float32)
+    finite = voxel >= 0
+    out[finite] = np.take(values, voxel[finite], axis=0)
+    return out
+
+
 def run_scan(net: SegNet, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Embedding (N, embed) float32 and logits (N, C) of a raw scan (N, 3+), row-aligned;
     rows with non-finite coordinates get zeros."""
     c = net.config
-    embedding = np.zeros((len(scan), c.embed), np.float32)
-    logits = np.zeros((len(scan), c.num_classes), np.float32)
     voxels = _scan_voxels(scan, c)
     if voxels is None:
-        return embedding, logits
+        zeros = np.zeros((len(scan), c.embed + c.num_classes), np.float32)
+        return zeros[:, : c.embed], zeros[:, c.embed :]
     inputs, voxel, m = voxels
     e, lg = _forward(net, inputs)
-    finite = voxel >= 0
-    embedding[finite] = np.asarray(e)[:m][voxel[finite]]
-    logits[finite] = np.asarray(lg)[:m][voxel[finite]]
-    return embedding, logits
+    return _rows(e, m, voxel), _rows(lg, m, voxel)
+
+
+def run_embedding(net: SegNet, scan: np.ndarray) -> np.ndarray:
+    """:func:`run_scan`'s embedding alone (N, embed), without evaluating the classifier."""
+    voxels = _scan_voxels(scan, net.config)
+    if voxels is None:
+        return np.zeros((len(scan), net.config.embed), np.float32)
+    inputs, voxel, m = voxels
+    return _rows(_embedding(net, inputs), m, voxel)
 
 
 def run_hidden(net: SegNet, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -399,7 +450,7 @@ class NetBackbone:
     ) -> np.ndarray:
         """Features (N, embed) float32 of a raw scan (N, 3+) ``x y z [intensity]``."""
         scan = pc.check_points(scan, path)
-        return run_scan(self.net, scan)[0]
+        return run_embedding(self.net, scan)
 
     def segment(self, scan: np.ndarray, path: str | os.PathLike[str] | None = None) -> np.ndarray:
         """SemanticKITTI class ids (N,) uint16 of a raw scan (N, 3+): the network's most likely

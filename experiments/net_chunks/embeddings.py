@@ -1,0 +1,28 @@
+"""Embeddings of the shipped net backbone on val 403 frames 0, 50, ..., 950, with whichever
+gloam_jax is on the path, and the backbone's median ms a scan: python embeddings.py DATA OUT.npz;
+with a third argument (another such file), the largest difference relative to its largest value."""
+
+import sys
+import time
+
+import numpy as np
+
+from gloam_jax.datasets import open_dataset
+from gloam_jax.models import load_model, shipped_model_path
+
+data, out = sys.argv[1], sys.argv[2]
+backbone = load_model(shipped_model_path("net")).backbone()
+sequence = open_dataset(data, sequence="403")
+rows, ms = {}, []
+for i in range(0, 1000, 50):
+    scan = sequence.frame(i)[0]
+    t0 = time.perf_counter()
+    rows[f"f{i}"] = backbone(scan)
+    ms.append(1e3 * (time.perf_counter() - t0))
+np.savez(out, **rows)
+print(f"backbone median {np.median(ms[1:]):.1f} ms a scan (first, compiling: {ms[0]:.0f})")
+if len(sys.argv) > 3:
+    with np.load(sys.argv[3]) as other:
+        diff = max(float(np.abs(rows[k] - other[k]).max()) for k in rows)
+        scale = max(float(np.abs(other[k]).max()) for k in rows)
+    print(f"largest difference {diff:.3g}, largest value {scale:.3g}, relative {diff / scale:.3g}")
