@@ -90,18 +90,24 @@ def _attentive_pooling(layer, h, xyz, nbr):
     return jax.nn.relu(layer.out(np.sum(attention * fh, axis=1)))
 
 
-@pytest.mark.parametrize("chunk_bytes", [1 << 21, 3000])
-def test_local_aggregation_in_chunks_is_the_one_piece_formula(monkeypatch, chunk_bytes):
-    # 3000 bytes: chunks of 5 rows (K = 8, 16 channels), 37 rows = 7 chunks and a remainder
+@pytest.mark.parametrize(
+    ("backend", "chunk_bytes"), [("cpu", 1 << 21), ("cpu", 3000), ("gpu", 3000)]
+)
+def test_local_aggregation_in_chunks_is_the_one_piece_formula(monkeypatch, backend, chunk_bytes):
+    # 3000 bytes: chunks of 5 rows (K = 8, 16 channels), 37 rows = 7 chunks and a remainder;
+    # on an accelerator all rows at once
     monkeypatch.setattr(net_module, "_CHUNK_BYTES", chunk_bytes)
+    monkeypatch.setattr(jax, "default_backend", lambda: backend)
     rng = np.random.default_rng(0)
     xyz = rng.normal(size=(37, 3)).astype(np.float32)
     h = rng.normal(size=(37, 8)).astype(np.float32)
     nbr = cKDTree(xyz).query(xyz, 8)[1].astype(np.int32)
     layer = LocalAggregation(8, 16, key=jax.random.key(3))
+    want = np.asarray(_attentive_pooling(layer, h, xyz, nbr))
     got = np.asarray(eqx.filter_jit(layer.__call__)(h, xyz, nbr))
     assert got.shape == (37, 16)
-    np.testing.assert_allclose(got, np.asarray(_attentive_pooling(layer, h, xyz, nbr)), atol=1e-5)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(layer(h, xyz, nbr)), want, atol=1e-5)  # eager, NumPy
 
 
 def test_networks_blind_to_intensity_or_to_its_units(tmp_path):

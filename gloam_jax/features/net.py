@@ -141,6 +141,7 @@ class LocalAggregation(eqx.Module):
 
     def __call__(self, h: jax.Array, xyz: jax.Array, nbr: jax.Array) -> jax.Array:
         half = self.position.weight.shape[1]
+        xyz, nbr = jnp.asarray(xyz), jnp.asarray(nbr)  # indexed by traced rows below
         # Transform before gathering: N rows instead of N * K. The attention score of the
         # concatenation [enc, f] splits likewise: its f half is a per-point product, gathered.
         f = jax.nn.relu(self.feature(h))
@@ -159,13 +160,15 @@ class LocalAggregation(eqx.Module):
             )  # fmt: skip
             return jax.nn.relu(self.out(pooled))
 
+        if jax.default_backend() != "cpu":  # an accelerator takes all rows in one pass
+            return rows(jnp.arange(nbr.shape[0], dtype=jnp.int32))
         edge_bytes = nbr.shape[1] * self.out.weight.shape[1] * 4
         return in_chunks(rows, nbr.shape[0], max(1, _CHUNK_BYTES // edge_bytes))
 
 
-# The per-edge tensors (rows x K x channels) are evaluated this many bytes at a time, so they
-# stay in a core's L2 cache: whole, they were written to and read from memory several times,
-# and that, not the arithmetic, set the network's time on the CPU (experiments/net_chunks).
+# On the CPU the per-edge tensors (rows x K x channels) are evaluated this many bytes at a
+# time, so they stay in a core's L2 cache: whole, they were written to and read from memory
+# several times, and that, not the arithmetic, set the network's time (experiments/net_chunks).
 _CHUNK_BYTES = 2 << 20
 
 
