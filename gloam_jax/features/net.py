@@ -124,7 +124,9 @@ class Dense(eqx.Module):
 
 class LocalAggregation(eqx.Module):
     """Local spatial encoding + attentive pooling (RandLA-Net): features (N, c_in) at points
-    xyz (N, 3) with neighbours (N, K) -> (N, c_out)."""
+    xyz (N, 3) with neighbours (N, K) -> (N, c_out). ``chunked``: on the CPU, rows a few at a
+    time (one scan's inference); off, all at once (training's vmapped, differentiated
+    batches, which chunks made slower)."""
 
     position: Dense
     feature: Dense
@@ -139,7 +141,9 @@ class LocalAggregation(eqx.Module):
         self.score = Dense(c_out, c_out, key=k3)
         self.out = Dense(c_out, c_out, key=k4)
 
-    def __call__(self, h: jax.Array, xyz: jax.Array, nbr: jax.Array) -> jax.Array:
+    def __call__(
+        self, h: jax.Array, xyz: jax.Array, nbr: jax.Array, chunked: bool = True
+    ) -> jax.Array:
         half = self.position.weight.shape[1]
         xyz, nbr = jnp.asarray(xyz), jnp.asarray(nbr)  # indexed by traced rows below
         # Transform before gathering: N rows instead of N * K. The attention score of the
@@ -160,7 +164,7 @@ class LocalAggregation(eqx.Module):
             )  # fmt: skip
             return jax.nn.relu(self.out(pooled))
 
-        if jax.default_backend() != "cpu":  # an accelerator takes all rows in one pass
+        if not chunked or jax.default_backend() != "cpu":  # an accelerator: all in one pass
             return rows(jnp.arange(nbr.shape[0], dtype=jnp.int32))
         edge_bytes = nbr.shape[1] * self.out.weight.shape[1] * 4
         return in_chunks(rows, nbr.shape[0], max(1, _CHUNK_BYTES // edge_bytes))
@@ -202,15 +206,16 @@ class SegNet(eqx.Module):
         self.decode = Dense(w1 + w2, config.embed, key=k[3])
         self.classify = Dense(config.embed, config.num_classes, key=k[4])
 
-    def __call__(self, x: NetInputs) -> tuple[jax.Array, jax.Array]:
-        embedding = embed(self.decode.weight, self.decode.bias, self.hidden(x))
+    def __call__(self, x: NetInputs, chunked: bool = True) -> tuple[jax.Array, jax.Array]:
+        embedding = embed(self.decode.weight, self.decode.bias, self.hidden(x, chunked))
         return embedding, self.classify(embedding)
 
-    def hidden(self, x: NetInputs) -> jax.Array:
-        """The decoder's input (N0, widths[1] + widths[2]): all but the last layers."""
-        h0 = self.local0(jax.nn.relu(self.stem(x.inputs)), x.xyz, x.nbr0)
+    def hidden(self, x: NetInputs, chunked: bool = True) -> jax.Array:
+        """The decoder's input (N0, widths[1] + widths[2]): all but the last layers
+        (``chunked``: see :class:`LocalAggregation`)."""
+        h0 = self.local0(jax.nn.relu(self.stem(x.inputs)), x.xyz, x.nbr0, chunked)
         h1 = jnp.max(h0[x.nbr0[x.sub]], axis=1)  # each sampled voxel pools its neighbourhood
-        h1 = self.local1(h1, x.xyz[x.sub], x.nbr1)
+        h1 = self.local1(h1, x.xyz[x.sub], x.nbr1, chunked)
         return jnp.concatenate([h0, h1[x.up]], axis=-1)
 
 

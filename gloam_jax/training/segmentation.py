@@ -133,7 +133,7 @@ def weighted_cross_entropy(
     net: SegNet, x: NetInputs, labels: jax.Array, weights: jax.Array
 ) -> jax.Array:
     """Class-weighted mean cross-entropy over labelled voxels of a batch (B, N) of crops."""
-    logits = jax.vmap(lambda xi: net(xi)[1])(x)  # (B, N, C)
+    logits = jax.vmap(lambda xi: net(xi, chunked=False)[1])(x)  # (B, N, C)
     valid = labels >= 0
     y = jnp.where(valid, labels, 0)
     nll = -jnp.take_along_axis(jax.nn.log_softmax(logits), y[..., None], axis=-1)[..., 0]
