@@ -16,7 +16,7 @@ from gloam_jax.datasets.rosbag import decode_cloud
 from gloam_jax.errors import InputError
 from gloam_jax.odometry import OdometryConfig
 from gloam_jax.pipeline import run_dataset, select_frames
-from gloam_jax.preprocess import PreprocessConfig
+from gloam_jax.preprocess import normalise_times
 from gloam_jax.simulate import simulate
 
 rosbags = pytest.importorskip("rosbags")  # the `ros` extra (in `test` too)
@@ -201,34 +201,30 @@ def test_a_recording_runs_exactly_as_its_scans_in_a_folder(drive, tmp_path, stor
     np.testing.assert_allclose(stamps, drive.stamps[list(chosen)], rtol=0, atol=1e-6)
 
 
-def drift_percent(estimate: np.ndarray, truth: np.ndarray) -> float:
-    """Translation error of the frame-to-frame motions, % of the distance driven."""
-    motion_e = np.linalg.inv(estimate[:-1]) @ estimate[1:]
-    motion_t = np.linalg.inv(truth[:-1]) @ truth[1:]
-    error = np.linalg.inv(motion_t) @ motion_e
-    driven = np.linalg.norm(motion_t[:, :3, 3], axis=1).sum()
-    return 100 * np.linalg.norm(error[:, :3, 3], axis=1).sum() / driven
-
-
 def test_each_drivers_time_field_deskews_as_the_simulators_own_times(drive, tmp_path):
+    # What the deskew reads of a scan is its times made seconds from mid-sweep: for each
+    # driver's field they must be the simulator's own, frame by frame (a field ignored, or the
+    # wrong one read, is off by up to a whole sweep, 0.1 s).
     frames = select_frames(FRAMES)
-    truth = io.cam_to_lidar_poses(drive.kitti.gt_poses_cam, drive.kitti.Tr_cam_velo)
+    own = [normalise_times(t, 0.1)[0] for _, t in drive.frames]
     reference = run_dataset(drive.kitti, OdometryConfig(), tmp_path / "ref", frames)
+    assert reference["deskew"]["used"] == "timestamps"
     assert reference["deskew"]["time_convention"] == "s from mid-sweep"
-    ref_drift = drift_percent(lidar_poses(tmp_path / "ref", "00"), truth)
-    off = OdometryConfig(preprocess=PreprocessConfig(deskew="off"))
-    run_dataset(drive.kitti, off, tmp_path / "off", frames)
-    off_drift = drift_percent(lidar_poses(tmp_path / "off", "00"), truth)
-    # Not deskewing moves the drift (2.44 % against 2.32 %) past the 2 % tolerance below, so
-    # a time field misread (ignored, or the wrong one) fails the test.
-    assert abs(off_drift - ref_drift) > 0.02 * ref_drift
+    poses = lidar_poses(tmp_path / "ref", "00")
     for driver in DRIVERS:
         bag = write_recording(tmp_path / f"{driver}.bag", "ros1",
                               {"/points": driver_messages(drive, driver)})  # fmt: skip
-        result = run_dataset(open_dataset(bag), OdometryConfig(), tmp_path / driver, frames)
+        recording = open_dataset(bag)
+        for k in range(FRAMES):
+            times, convention = normalise_times(recording.frame(k)[1], 0.1)
+            assert convention == DRIVERS[driver]["convention"]
+            np.testing.assert_allclose(times, own[k], rtol=0, atol=1e-6)
+        result = run_dataset(recording, OdometryConfig(), tmp_path / driver, frames)
+        assert result["deskew"]["used"] == "timestamps"
         assert result["deskew"]["time_convention"] == DRIVERS[driver]["convention"]
-        drift = drift_percent(lidar_poses(tmp_path / driver, driver), truth)
-        assert abs(drift - ref_drift) <= 0.02 * ref_drift, (driver, drift, ref_drift)
+        # The same run, up to where times a few ns apart tip a round's discrete choices
+        # (requery, convergence) the other way: millimetres, on this 16-beam drive.
+        np.testing.assert_allclose(lidar_poses(tmp_path / driver, driver), poses, atol=0.02)
 
 
 def test_any_field_order_type_byte_order_and_padding_decodes():
