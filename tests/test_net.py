@@ -10,6 +10,7 @@ import pytest
 from scipy.spatial import cKDTree
 from typer.testing import CliRunner
 
+from gloam_jax import pointcloud as pc
 from gloam_jax.cli import app
 from gloam_jax.errors import InputError
 from gloam_jax.features import fit_pca, get_backbone, intensity_warning
@@ -25,6 +26,7 @@ from gloam_jax.features.net import (
     save_net,
 )
 from gloam_jax.models import init_model, save_model, shipped_model_path
+from gloam_jax.preprocess import PreprocessConfig, voxel_centres
 from gloam_jax.training.segmentation import (
     LabelledScan,
     SegmentationConfig,
@@ -183,7 +185,38 @@ def test_weights_round_trip_and_bad_files(tmp_path, weights):
         get_backbone("nett")
 
 
-def test_net_backbone_inside_gloam_run(tmp_path, weights):
+GRID = {"resolution": 0.5, "min_range": 3.0, "max_range": 100.0, "k": 10}  # the shipped configs'
+
+
+def test_net_backbone_on_the_registration_grid(weights):
+    backbone = get_backbone("net", weights=str(weights), grid=GRID)
+    assert get_backbone("net", **backbone.options()).grid == GRID
+    assert backbone.shares_grid(0.5, 3.0, 100.0) and not backbone.shares_grid(0.25, 3.0, 100.0)
+    assert not get_backbone("net", weights=str(weights)).shares_grid(0.5, 3.0, 100.0)
+    scan, _ = toy_scan(n=6000)
+    scan[:10, :3] += np.float32([200.0, 0, 0])  # beyond max_range: zero rows
+    centres = voxel_centres(scan, None, PreprocessConfig(), pca=fit_pca([backbone(scan)]),
+                            backbone=backbone)  # fmt: skip
+    # The covariances' neighbours are the backbone's query: the centres' exact 10-NN.
+    want = cKDTree(centres.points).query(centres.points, 10)[1]
+    assert centres.neighbours.shape == (len(centres.points), 10)
+    assert np.mean(centres.neighbours == want) > 0.999  # ties aside
+    f = backbone(scan)
+    keep = pc.range_mask(scan, 3.0, 100.0)[0]  # the far ten and those within 3 m out
+    assert f.shape == (len(scan), 32) and not keep[:10].any() and np.all(f[~keep] == 0)
+    # every point in the band carries its 0.5 m voxel's embedding (the one voxel_centres keeps)
+    grid = pc.voxel_grid(scan[keep, :3].astype(np.float64), 0.5)
+    per_voxel = grid.means(f[keep].astype(np.float64))
+    np.testing.assert_allclose(f[keep], per_voxel[grid.inverse], atol=1e-5)
+    assert per_voxel.std(axis=0).max() > 0
+    for bad in ({"resolution": 0.5}, {**GRID, "k": 0}, {**GRID, "min_range": 200.0}):
+        with pytest.raises(InputError) as e:
+            get_backbone("net", weights=str(weights), grid=bad)
+        assert "\n" not in str(e.value)
+
+
+@pytest.mark.parametrize("grid", [None, GRID])
+def test_net_backbone_inside_gloam_run(tmp_path, weights, grid):
     # A folder of four scans of one scene, the sensor moving 0.3 m along x per scan.
     scene, _ = toy_scan(2, 6000)
     rng = np.random.default_rng(4)
@@ -198,7 +231,7 @@ def test_net_backbone_inside_gloam_run(tmp_path, weights):
     folder.mkdir()
     for i in range(4):
         np.save(folder / f"{i:06d}.npy", scene - np.float32([0.3 * i, 0, 0, 0]))
-    backbone = get_backbone("net", weights=str(weights))
+    backbone = get_backbone("net", weights=str(weights), grid=grid)
     pca = fit_pca([backbone(np.load(folder / f"{i:06d}.npy")) for i in (0, 3)])
     model = init_model(jax.random.PRNGKey(0), pca, backbone="net",
                        backbone_options=backbone.options(), init="gicp")  # fmt: skip

@@ -266,14 +266,19 @@ def sample_level1(m: int, ratio: int) -> np.ndarray:
 
 
 def build_inputs(
-    xyz: np.ndarray, intensity: np.ndarray, config: NetConfig, size: int | None = None
+    xyz: np.ndarray,
+    intensity: np.ndarray,
+    config: NetConfig,
+    size: int | None = None,
+    nbr0: np.ndarray | None = None,
 ) -> NetInputs:
     """The network's inputs for M >= 1 voxels xyz (M, 3), intensity (M,), level 0 padded to
-    ``size`` rows (default: M's bucket) and level 1 to ``ceil(size / ratio)``."""
+    ``size`` rows (default: M's bucket) and level 1 to ``ceil(size / ratio)``; ``nbr0``: the
+    level-0 k-NN (M, K) where already found (else ``config.k`` of them are queried)."""
     m = len(xyz)
     size = pc.bucket_size(m) if size is None else size
     sub = sample_level1(m, config.ratio)
-    nbr0 = _knn(KdTree(xyz), xyz, config.k)
+    nbr0 = _knn(KdTree(xyz), xyz, config.k) if nbr0 is None else nbr0
     tree1 = KdTree(xyz[sub])
     nbr1 = _knn(tree1, xyz[sub], config.k)
     up = _knn(tree1, xyz, 1)[:, 0]
@@ -286,7 +291,7 @@ def build_inputs(
     return NetInputs(
         xyz=pc.pad(xyz.astype(np.float32), size)[0],
         inputs=pc.pad(features.astype(np.float32), size)[0],
-        nbr0=np.concatenate([nbr0, np.repeat(pad0[:, None], config.k, 1)]),
+        nbr0=np.concatenate([nbr0, np.repeat(pad0[:, None], nbr0.shape[1], 1)]),
         sub=np.concatenate([sub, np.zeros(len(pad1), np.int32)]),
         nbr1=np.concatenate([nbr1, np.repeat(pad1[:, None], config.k, 1)]),
         up=np.concatenate([up, np.zeros(len(pad0), np.int32)]),
@@ -416,19 +421,41 @@ def load_net(path: str | os.PathLike[str]) -> tuple[SegNet, dict[str, Any]]:
     return eqx.combine(params, static), metadata.get("provenance", {})
 
 
+def _grid_setting(grid: dict[str, float]) -> dict[str, float]:
+    """A checked ``grid`` option of :class:`NetBackbone`."""
+    keys = {"resolution", "min_range", "max_range", "k"}
+    if not isinstance(grid, dict) or set(grid) != keys:
+        raise InputError(
+            None, f"the net backbone's grid needs exactly {sorted(keys)}, not {grid!r}"
+        )
+    ok = grid["resolution"] > 0 and 0 <= grid["min_range"] < grid["max_range"]
+    if not ok or grid["k"] != int(grid["k"]) or grid["k"] < 1:
+        raise InputError(None, f"bad net backbone grid {grid!r}")
+    return {k: float(v) for k, v in grid.items() if k != "k"} | {"k": int(grid["k"])}
+
+
 class NetBackbone:
     """Per-point embeddings of a trained :class:`SegNet`: raw scan (N, 3+) -> (N, embed).
 
     ``weights``: a file from ``gloam train-backbone``, or the name of a shipped network:
     ``"default"`` (``gloam_jax/data/net_default.npz``), ``"no-intensity"`` (geometry only) or
     ``"intensity-rank"`` (intensity as its rank in the scan).
+
+    ``grid``: None, the network's own voxels (``voxel_size``) and k-NN (``k``) over the whole
+    scan; or ``{"resolution", "min_range", "max_range", "k"}``: the voxel means of a
+    registration's preprocessing at that resolution and range band, with their ``k`` nearest
+    at level 0, which the covariances then share (:meth:`voxel_features`;
+    experiments/net_grid). Each raw point gets its voxel's embedding.
     """
 
     name = "net"
 
-    def __init__(self, weights: str | os.PathLike[str] = "default") -> None:
+    def __init__(
+        self, weights: str | os.PathLike[str] = "default", grid: dict[str, float] | None = None
+    ) -> None:
         self.weights = str(weights)
         self.net, self.provenance = load_net(SHIPPED_NETS.get(self.weights, weights))
+        self.grid = None if grid is None else _grid_setting(grid)
 
     @property
     def dim(self) -> int:
@@ -447,7 +474,17 @@ class NetBackbone:
 
     def options(self) -> dict[str, Any]:
         """Keyword arguments that rebuild this backbone (JSON-serialisable)."""
-        return {"weights": self.weights}
+        return {"weights": self.weights} | ({} if self.grid is None else {"grid": self.grid})
+
+    def shares_grid(self, resolution: float, min_range: float, max_range: float) -> bool:
+        """Whether this backbone runs on the voxels of a preprocessing at ``resolution`` m over
+        [``min_range``, ``max_range``] m, so :meth:`voxel_features` can run on its grid."""
+        g = self.grid
+        return g is not None and (g["resolution"], g["min_range"], g["max_range"]) == (
+            resolution,
+            min_range,
+            max_range,
+        )
 
     def __call__(
         self,
@@ -456,9 +493,42 @@ class NetBackbone:
         path: str | os.PathLike[str] | None = None,
         frame: int | None = None,
     ) -> np.ndarray:
-        """Features (N, embed) float32 of a raw scan (N, 3+) ``x y z [intensity]``."""
+        """Features (N, embed) float32 of a raw scan (N, 3+) ``x y z [intensity]``; on a
+        ``grid``, zeros for points outside its range band or not finite."""
         scan = pc.check_points(scan, path)
-        return run_embedding(self.net, scan)
+        if self.grid is None:
+            return run_embedding(self.net, scan)
+        out = np.zeros((len(scan), self.dim), np.float32)
+        try:
+            keep = pc.range_mask(scan, self.grid["min_range"], self.grid["max_range"], path)[0]
+        except InputError:  # no valid point: all rows zero
+            return out
+        xyz = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
+        intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
+        grid = pc.voxel_grid(xyz, self.grid["resolution"])
+        out[keep] = np.take(self.voxel_features(xyz, intensity, grid)[0], grid.inverse, axis=0)
+        return out
+
+    def voxel_features(
+        self, xyz: np.ndarray, intensity: np.ndarray | None, grid: pc.VoxelGrid
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The embedding (M, embed) float32 of each voxel of ``grid`` (this backbone's
+        ``grid``, :meth:`shares_grid`), from the points (N, 3) float64 and intensities (N,) or
+        None within the range band, and the k-NN of the voxel means it queried (M, k) int32,
+        nearest first (M columns where fewer), for the covariances to reuse."""
+        centres = grid.means(xyz)
+        values = np.zeros(len(centres))
+        if intensity is not None:
+            finite = np.nan_to_num(np.asarray(intensity, np.float64), posinf=0.0, neginf=0.0)
+            values = grid.means(finite[:, None])[:, 0]
+        k = min(int(self.grid["k"]), len(centres))
+        nearest = KdTree(centres).nearest(centres, k)[1].astype(np.int32)
+        nbr0 = np.concatenate(  # a short cloud repeats each voxel's nearest, as _knn does
+            [nearest, np.repeat(nearest[:, :1], int(self.grid["k"]) - k, axis=1)], axis=1
+        )
+        inputs = build_inputs(centres, scan_intensity(values, self.net.config), self.net.config,
+                              nbr0=nbr0)  # fmt: skip
+        return np.asarray(_embedding(self.net, inputs))[: len(centres)], nearest
 
     def segment(self, scan: np.ndarray, path: str | os.PathLike[str] | None = None) -> np.ndarray:
         """SemanticKITTI class ids (N,) uint16 of a raw scan (N, 3+): the network's most likely
