@@ -94,7 +94,8 @@ class TrainConfig:
     backbone_weights: str = "default"
     # More options of that backbone (its class's keyword arguments; geometric: voxel_size,
     # scales, intensity_scale, max_height, drop, min_range, max_range: with the
-    # preprocessing's voxel size and range band it runs on the odometry's own voxel grid).
+    # preprocessing's voxel size and range band it runs on the odometry's own voxel grid;
+    # net: grid, {resolution, min_range, max_range, k}, likewise).
     backbone_options: dict[str, Any] = field(default_factory=dict)
     pca_every: int = 25  # without init_model: fit the PCA on every N-th training scan
     seed: int = 0  # of the start model, TPE's sampler and the point subsets
