@@ -6,7 +6,9 @@ jitted functions like any other array tree (fine-tuning through GICP needs nothi
 
 One scan, on the host (NumPy and scipy's k-d tree), then one jitted call:
 
-1. voxel means at ``voxel_size`` (level 0, M points) and their k-NN graph (M, K);
+1. voxel means at ``voxel_size`` (level 0, M points) and their k-NN graph (M, K); on a
+   registration's grid (:class:`NetBackbone`'s ``grid``), that grid's voxel means in its range
+   band and their ``k`` nearest, which the covariances then share;
 2. random sampling of one voxel in ``ratio`` (level 1; a fixed seed over the voxels in
    sorted key order, so the choice does not depend on the order of the scan's points), the
    level-1 k-NN graph and each voxel's nearest level-1 point;
