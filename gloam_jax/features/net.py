@@ -209,8 +209,12 @@ class SegNet(eqx.Module):
         self.classify = Dense(config.embed, config.num_classes, key=k[4])
 
     def __call__(self, x: NetInputs, chunked: bool = True) -> tuple[jax.Array, jax.Array]:
-        embedding = embed(self.decode.weight, self.decode.bias, self.hidden(x, chunked))
+        embedding = self.embedding(x, chunked)
         return embedding, self.classify(embedding)
+
+    def embedding(self, x: NetInputs, chunked: bool = True) -> jax.Array:
+        """The embedding (N0, embed) alone, without the classifier."""
+        return embed(self.decode.weight, self.decode.bias, self.hidden(x, chunked))
 
     def hidden(self, x: NetInputs, chunked: bool = True) -> jax.Array:
         """The decoder's input (N0, widths[1] + widths[2]): all but the last layers
@@ -307,7 +311,7 @@ def _forward(net: SegNet, x: NetInputs) -> tuple[jax.Array, jax.Array]:
 
 @eqx.filter_jit
 def _embedding(net: SegNet, x: NetInputs) -> jax.Array:
-    return embed(net.decode.weight, net.decode.bias, net.hidden(x))
+    return net.embedding(x)
 
 
 @eqx.filter_jit
@@ -352,8 +356,8 @@ def run_scan(net: SegNet, scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     c = net.config
     voxels = _scan_voxels(scan, c)
     if voxels is None:
-        zeros = np.zeros((len(scan), c.embed + c.num_classes), np.float32)
-        return zeros[:, : c.embed], zeros[:, c.embed :]
+        return (np.zeros((len(scan), c.embed), np.float32),
+                np.zeros((len(scan), c.num_classes), np.float32))  # fmt: skip
     inputs, voxel, m = voxels
     e, lg = _forward(net, inputs)
     return _rows(e, m, voxel), _rows(lg, m, voxel)
@@ -523,14 +527,11 @@ class NetBackbone:
         if intensity is not None:
             finite = np.nan_to_num(np.asarray(intensity, np.float64), posinf=0.0, neginf=0.0)
             values = grid.means(finite[:, None])[:, 0]
-        k = min(int(self.grid["k"]), len(centres))
-        nearest = KdTree(centres).nearest(centres, k)[1].astype(np.int32)
-        nbr0 = np.concatenate(  # a short cloud repeats each voxel's nearest, as _knn does
-            [nearest, np.repeat(nearest[:, :1], int(self.grid["k"]) - k, axis=1)], axis=1
-        )
+        nbr0 = _knn(KdTree(centres), centres, self.grid["k"])  # a short cloud repeats columns
         inputs = build_inputs(centres, scan_intensity(values, self.net.config), self.net.config,
                               nbr0=nbr0)  # fmt: skip
-        return np.asarray(_embedding(self.net, inputs))[: len(centres)], nearest
+        embedding = np.asarray(_embedding(self.net, inputs))[: len(centres)]
+        return embedding, nbr0[:, : min(self.grid["k"], len(centres))]
 
     def segment(self, scan: np.ndarray, path: str | os.PathLike[str] | None = None) -> np.ndarray:
         """SemanticKITTI class ids (N,) uint16 of a raw scan (N, 3+): the network's most likely
