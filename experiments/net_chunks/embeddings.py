@@ -9,10 +9,13 @@ import time
 import numpy as np
 
 from gloam_jax.datasets import open_dataset
+from gloam_jax.features import get_backbone
 from gloam_jax.models import load_model, shipped_model_path
 
 data, out = sys.argv[1], sys.argv[2]
-backbone = load_model(shipped_model_path("net")).backbone()
+# the shipped network on its own 0.3 m voxels, as measured here (since net_grid the shipped
+# model runs it on the registration's grid)
+backbone = get_backbone("net", weights=load_model(shipped_model_path("net")).backbone().weights)
 sequence = open_dataset(data, sequence="403")
 scans = {f"f{i}": sequence.frame(i)[0] for i in range(0, 1000, 50)}
 rows = {k: backbone(scan) for k, scan in scans.items()}

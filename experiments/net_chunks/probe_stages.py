@@ -8,11 +8,14 @@ import jax
 import numpy as np
 
 from gloam_jax.datasets import open_dataset
+from gloam_jax.features import get_backbone
 from gloam_jax.features import net as N
 from gloam_jax.models import load_model, shipped_model_path
 from gloam_jax.neighbors import KdTree
 
-backbone = load_model(shipped_model_path("net")).backbone()
+# the shipped network on its own 0.3 m voxels, as measured here (since net_grid the shipped
+# model runs it on the registration's grid)
+backbone = get_backbone("net", weights=load_model(shipped_model_path("net")).backbone().weights)
 c, first = backbone.net.config, int(sys.argv[2]) if len(sys.argv) > 2 else 100
 sequence = open_dataset(sys.argv[1], sequence="403")
 scans = [sequence.frame(i)[0] for i in range(first, first + 10)]
