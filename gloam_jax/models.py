@@ -255,7 +255,8 @@ model trained and shipped with the package (``gloam_jax/data/gloam_default.npz``
 # sensor (gloam_jax/guard.py): "hdl64" first (configs/train_hdl64.yaml, chosen on the
 # KITTI-length validation worlds, where it beats the protocol's model on HDL-64 scans), then
 # the protocol's model (HDL-64 and VLP-16); "net" is GLOAM on the net backbone
-# (configs/gloam_net.yaml).
+# (configs/gloam_net.yaml; trained by configs/train_net.yaml, chosen on the long validation
+# worlds: experiments/net_long).
 SHIPPED_MODELS = {"hdl64": "gloam_hdl64.npz", SHIPPED: "gloam_default.npz", "net": "gloam_net.npz"}
 
 

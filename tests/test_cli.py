@@ -257,34 +257,41 @@ def test_every_experiment_config_loads_from_its_folder():
 
 
 def test_the_shipped_protocol_configs_are_the_experiments_that_made_the_shipped_models():
-    """configs/train_protocol.yaml, train_protocol_net.yaml and train_hdl64.yaml are written out
-    in one file each; they resolve to the same settings as the experiment chains that trained
-    the shipped models, and to the settings recorded in those model files."""
+    """configs/train_protocol.yaml, train_net.yaml and train_hdl64.yaml are written out in one
+    file each; they resolve to the same settings as the experiment chains that trained the
+    shipped models, and to the settings recorded in those model files. The net model's network
+    (gloam_net_backbone.npz) records its own chain's settings."""
     from pathlib import Path
 
     from gloam_jax.config import load_config
-    from gloam_jax.models import load_model
+    from gloam_jax.features.net import load_net
+    from gloam_jax.models import load_model, shipped_model_path
     from gloam_jax.training.config import TrainConfig
 
     experiments = Path(__file__).resolve().parents[1] / "experiments"
-    pairs = {
-        "train_protocol": ("w11_warmup/train_protocol_11_warmup.yaml", "default"),
-        "train_protocol_net": ("net_protocol/train_protocol_net_rank_finetune.yaml", "net"),
-        "train_hdl64": ("grid_features/train_grid.yaml", "hdl64"),
-    }
-    for shipped, (chain, model) in pairs.items():
+    network = shipped_model_path("net").with_name("gloam_net_backbone.npz")
+    chain = str(experiments / "net_protocol/train_protocol_net_rank_finetune.yaml")
+    made = [(load_config(chain, TrainConfig), load_net(network)[1]["config"])]
+    for shipped, chain, model in (
+        ("train_protocol", "w11_warmup/train_protocol_11_warmup.yaml", "default"),
+        ("train_net", "net_long/train_net_long.yaml", "net"),
+        ("train_hdl64", "grid_features/train_grid.yaml", "hdl64"),
+    ):
         config = load_config(shipped, TrainConfig)
         assert config == load_config(str(experiments / chain), TrainConfig)
-        recorded = load_model(model).provenance["config"]
+        made.append((config, load_model(model).provenance["config"]))
+    for config, recorded in made:
         assert recorded["sequences"] == list(config.sequences)
         assert recorded["validation"] == list(config.validation)
-        # (the net's model predates the warm-up setting, whose default 0 is no warm-up)
+        # (the net's network predates the warm-up setting, whose default 0 is no warm-up)
         assert (recorded["grad"].get("warmup_steps") or 0) == config.grad.warmup_steps
         assert recorded["grad"]["head_learning_rate"] == config.grad.head_learning_rate
         assert (recorded["backbone"], recorded["backbone_weights"]) == (
             config.backbone,
             config.backbone_weights,
         )
+        # (files from before the setting recorded none, which is its default)
+        assert recorded.get("backbone_options", {}) == config.backbone_options
 
 
 def test_model_info_says_how_a_model_was_made(tmp_path):

@@ -3,6 +3,7 @@
 
 import dataclasses
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,7 +26,8 @@ def test_a_model_file_loads_as_itself():
 
 def test_a_fine_tuning_runs_checkpoint_is_refused_in_one_line(tmp_path):
     # Its MLPs fit the fine-tuned layer's features; scored on the frozen ones they would mislead.
-    config = load_config("train_protocol_net", TrainConfig)  # fine-tunes the net's last layer
+    finetune = Path(__file__).resolve().parents[1] / "experiments/net_protocol"
+    config = load_config(str(finetune / "train_protocol_net_rank_finetune.yaml"), TrainConfig)
     dump_config(config, tmp_path / "config.yaml")
     (tmp_path / "checkpoint.npz").write_bytes(b"")
     with pytest.raises(SystemExit) as refused:

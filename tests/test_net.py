@@ -298,11 +298,15 @@ def test_shipped_network_loads_and_says_how_it_was_trained():
     model = load_model(load_config("gloam_net").model)
     assert model.backbone_name == "net" and model.backbone().dim == model.pca.input_dim
     assert model.provenance["mode"] == "grad" and model.provenance["steps"] > 0
-    # Chosen on the protocol's val worlds; its fine-tuned network ships beside it.
-    assert model.provenance["selected_on"] == "validation"
-    assert model.provenance["selected_value"] < model.provenance["validation_gicp"]
+    # Chosen on the long validation drives, below GICP there; its network ships beside it and
+    # runs on the registration's grid (experiments/net_long).
+    assert model.provenance["selected_on"] == "val_long"
+    assert model.provenance["selected_value"] < model.provenance["validation_gicp"] == 1.0
     beside = shipped_model_path("net").with_name("gloam_net_backbone.npz")
     assert model.backbone_options["weights"] == str(beside)
+    assert model.backbone_options["grid"]["resolution"] == 0.5
+    fine_tuned = load_net(beside)[1]
+    assert fine_tuned["fine_tuned_from"] == "intensity-rank" and fine_tuned["layers"] == "decode"
     # The geometry-only network, by name; a training run picks it with backbone_weights.
     blind = get_backbone("net", weights="no-intensity")
     assert not blind.net.config.intensity and blind.provenance["test"]["miou"] > 0.5
@@ -314,7 +318,8 @@ def test_shipped_network_loads_and_says_how_it_was_trained():
     experiment = Path(__file__).resolve().parents[1] / "experiments" / "net_protocol"
     picked = load_config(str(experiment / "train_protocol_net_noint_finetune.yaml"), TrainConfig)
     assert (picked.backbone, picked.backbone_weights) == ("net", "no-intensity")
-    picked = load_config("train_protocol_net", TrainConfig)  # the shipped net model's
+    # the chain that fine-tuned the shipped net model's network (gloam_net_backbone.npz)
+    picked = load_config(str(experiment / "train_protocol_net_rank_finetune.yaml"), TrainConfig)
     assert (picked.backbone, picked.backbone_weights) == ("net", "intensity-rank")
     assert picked.grad.head_learning_rate == 0.001
     with pytest.raises(InputError, match="backbone_weights chooses the net"):
