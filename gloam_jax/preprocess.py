@@ -47,8 +47,12 @@ class GridFeatures(Protocol):
     def shares_grid(self, resolution: float, min_range: float, max_range: float) -> bool: ...
 
     def voxel_features(
-        self, xyz: np.ndarray, intensity: np.ndarray | None, grid: pc.VoxelGrid
-    ) -> np.ndarray: ...
+        self,
+        xyz: np.ndarray,
+        intensity: np.ndarray | None,
+        grid: pc.VoxelGrid,
+        centres: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]: ...
 
 
 def on_grid(backbone: object, config: PreprocessConfig) -> GridFeatures | None:
@@ -368,15 +372,15 @@ def voxel_centres(
     if config.downsampling_resolution > 0:
         grid = pc.voxel_grid(points, config.downsampling_resolution)
         columns = [grid.means(a) for a in columns]
-    neighbours = None
+    neighbours, reduced = None, columns[0]
     if grid_features:
         with nullcontext() if timer is None else timer("features"):
             intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
-            grid_rows, nearest = backbone.voxel_features(points, intensity, grid)
+            # the voxel means of the points, already in the first column block
+            grid_rows, nearest = backbone.voxel_features(points, intensity, grid, reduced[:, :3])
             columns.append(pca.transform(grid_rows))
         if nearest.shape[1] >= config.num_neighbors:
             neighbours = nearest[:, : config.num_neighbors]
-    reduced = columns[0]
     return VoxelCentres(
         points=reduced[:, :3],
         times=reduced[:, 3],

@@ -36,11 +36,13 @@ def prepare(scan):
 
 for scan in scans[:3]:  # compile every bucket seen
     xyz, inten = prepare(scan)
-    backbone.voxel_features(xyz, inten, pc.voxel_grid(xyz, g["resolution"]))
+    grid = pc.voxel_grid(xyz, g["resolution"])
+    backbone.voxel_features(xyz, inten, grid, grid.means(xyz))
 for scan in scans:
     xyz, inten = prepare(scan)
     grid = timed("voxel grid (registration's)", pc.voxel_grid, xyz, g["resolution"])
-    timed("voxel_features (all below)", backbone.voxel_features, xyz, inten, grid)
+    whole = lambda a, i, v: backbone.voxel_features(a, i, v, v.means(a))  # noqa: E731
+    timed("voxel_features (all below)", whole, xyz, inten, grid)
     centres = timed("centres (means)", grid.means, xyz)
     values = timed("intensity means", grid.means, inten.astype(np.float64)[:, None])[:, 0]
     tree = timed("tree, level 0", KdTree, centres)

@@ -272,15 +272,20 @@ class GeometricBackbone:
         return out
 
     def voxel_features(
-        self, xyz: np.ndarray, intensity: np.ndarray | None, grid: pc.VoxelGrid
+        self,
+        xyz: np.ndarray,
+        intensity: np.ndarray | None,
+        grid: pc.VoxelGrid,
+        centres: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The mean of :meth:`__call__`'s rows over each voxel of ``grid`` (M, D) float32,
-        from the points (N, 3) float64 and intensities (N,) or None within the range: the
-        same values without a second voxel grid or a row per point, where ``grid`` has this
-        backbone's voxels (:meth:`shares_grid`). Also the k-NN of the voxel centres it
-        queried (M, k) int32, nearest first, k its largest scale (M where fewer), for the
-        covariances to reuse."""
-        voxels = grid.means(xyz)
+        from the points (N, 3) float64 and intensities (N,) or None within the range and the
+        voxel means ``grid.means(xyz)`` (M, 3) the caller already has: the same values
+        without a second voxel grid or a row per point, where ``grid`` has this backbone's
+        voxels (:meth:`shares_grid`). Also the k-NN of the voxel centres it queried (M, k)
+        int32, nearest first, k its largest scale (M where fewer), for the covariances to
+        reuse."""
+        voxels = centres
         per_voxel, nearest = self._per_voxel(voxels, grid.counts)
         features = np.concatenate(
             [per_voxel, grid.means(self._per_point(xyz, intensity, voxels))], axis=1

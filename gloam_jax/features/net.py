@@ -512,17 +512,22 @@ class NetBackbone:
         xyz = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
         intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
         grid = pc.voxel_grid(xyz, self.grid["resolution"])
-        out[keep] = np.take(self.voxel_features(xyz, intensity, grid)[0], grid.inverse, axis=0)
+        embedding = self.voxel_features(xyz, intensity, grid, grid.means(xyz))[0]
+        out[keep] = np.take(embedding, grid.inverse, axis=0)
         return out
 
     def voxel_features(
-        self, xyz: np.ndarray, intensity: np.ndarray | None, grid: pc.VoxelGrid
+        self,
+        xyz: np.ndarray,
+        intensity: np.ndarray | None,
+        grid: pc.VoxelGrid,
+        centres: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The embedding (M, embed) float32 of each voxel of ``grid`` (this backbone's
         ``grid``, :meth:`shares_grid`), from the points (N, 3) float64 and intensities (N,) or
-        None within the range band, and the k-NN of the voxel means it queried (M, k) int32,
-        nearest first (M columns where fewer), for the covariances to reuse."""
-        centres = grid.means(xyz)
+        None within the range band and their voxel means ``grid.means(xyz)`` (M, 3), and the
+        k-NN of those means it queried (M, k) int32, nearest first (M columns where fewer),
+        for the covariances to reuse."""
         values = np.zeros(len(centres))
         if intensity is not None:
             finite = np.nan_to_num(np.asarray(intensity, np.float64), posinf=0.0, neginf=0.0)
