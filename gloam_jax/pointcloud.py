@@ -75,6 +75,32 @@ def range_mask(
     return valid & (r2 >= min_range * min_range) & (r2 <= max_range * max_range), invalid
 
 
+@dataclass(frozen=True)
+class RangeBand:
+    """The rows of a raw scan (N, 3+) within a range band: ``keep`` (N,) bool, their xyz
+    (M, 3) float64 and the number of invalid rows (:func:`range_mask`)."""
+
+    scan: np.ndarray
+    keep: np.ndarray
+    xyz: np.ndarray
+    invalid: int
+
+    def intensity(self) -> np.ndarray | None:
+        """The kept rows' fourth column (M,), None where the scan has three."""
+        return np.compress(self.keep, self.scan[:, 3]) if self.scan.shape[1] > 3 else None
+
+
+def range_band(
+    scan: np.ndarray, min_range: float, max_range: float, source: str | None = None
+) -> RangeBand:
+    """The points of a raw scan (N, 3+) between ``min_range`` and ``max_range`` m, as the
+    preprocessing and the grid backbones select them; errors as :func:`range_mask`."""
+    keep, invalid = range_mask(scan, min_range, max_range, source)
+    # np.compress: the rows of scan[keep, :3], selected faster than a boolean index does.
+    xyz = np.compress(keep, np.asarray(scan)[:, :3], axis=0).astype(np.float64)
+    return RangeBand(np.asarray(scan), keep, xyz, invalid)
+
+
 def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:
     """Keep points whose distance from the sensor lies in [min_range, max_range]: (N, D)."""
     return points[range_mask(points, min_range, max_range)[0]]

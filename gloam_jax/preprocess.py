@@ -281,14 +281,12 @@ def centre_rows(
     """Which voxel centre of :func:`preprocess_scan` each raw point (N,) went into, -1 for
     points it dropped: the map that averages per-point quantities onto the centres (the
     fine-tuned backbone's features in training)."""
-    keep, _ = pc.range_mask(scan, config.min_range, config.max_range, source)
+    band = pc.range_band(scan, config.min_range, config.max_range, source)
     rows = np.full(len(scan), -1, np.int64)
     if config.downsampling_resolution <= 0:
-        rows[keep] = np.arange(np.count_nonzero(keep))
-    elif keep.any():
-        # np.compress: the rows voxel_centres keeps, selected as it selects them
-        kept = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
-        rows[keep] = pc.voxel_index(kept, config.downsampling_resolution)[0]
+        rows[band.keep] = np.arange(len(band.xyz))
+    elif len(band.xyz):
+        rows[band.keep] = pc.voxel_index(band.xyz, config.downsampling_resolution)[0]
     return rows
 
 
@@ -333,9 +331,8 @@ def voxel_centres(
     has the arguments). With ``pca``, the centres' features come either from ``features``
     (N, D), averaged per voxel, or from ``backbone`` on this grid (the same values: the
     backbone must share the grid, ``shares_grid``), timed as stage ``features`` of ``timer``."""
-    keep, dropped = pc.range_mask(scan, config.min_range, config.max_range, source)
-    # np.compress: the rows of scan[keep, :3], selected faster than a boolean index does.
-    points = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
+    band = pc.range_band(scan, config.min_range, config.max_range, source)
+    keep, points, dropped = band.keep, band.xyz, band.invalid
     if len(points) == 0:
         raise InputError(source, f"no points between {config.min_range} and {config.max_range} m")
     policy = config.deskew
@@ -375,9 +372,10 @@ def voxel_centres(
     neighbours, reduced = None, columns[0]
     if grid_features:
         with nullcontext() if timer is None else timer("features"):
-            intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
             # the voxel means of the points, already in the first column block
-            grid_rows, nearest = backbone.voxel_features(points, intensity, grid, reduced[:, :3])
+            grid_rows, nearest = backbone.voxel_features(
+                points, band.intensity(), grid, reduced[:, :3]
+            )
             columns.append(pca.transform(grid_rows))
         if nearest.shape[1] >= config.num_neighbors:
             neighbours = nearest[:, : config.num_neighbors]

@@ -56,6 +56,20 @@ def test_range_mask_and_buckets():
         pc.range_mask(np.full((3, 3), np.inf), 3.0, 100.0)
 
 
+def test_range_band_selects_the_mask_rows_in_float64():
+    rows = [[1.0, 0, 0, 7], [5.0, 0, 0, 8], [np.nan, 0, 0, 9], [0, 4.0, 1, 10]]
+    scan = np.array(rows, np.float32)
+    band = pc.range_band(scan, 3.0, 100.0, "scan.bin")
+    assert band.keep.tolist() == [False, True, False, True] and band.invalid == 1
+    assert band.xyz.dtype == np.float64
+    np.testing.assert_array_equal(band.xyz, [[5, 0, 0], [0, 4, 1]])
+    np.testing.assert_array_equal(band.intensity(), [8, 10])
+    assert pc.range_band(scan[:, :3], 3.0, 100.0).intensity() is None
+    assert len(pc.range_band(scan, 50.0, 100.0).xyz) == 0
+    with pytest.raises(InputError, match="scan.bin.*NaN, infinite or beyond"):
+        pc.range_band(np.full((3, 3), np.nan), 3.0, 100.0, "scan.bin")
+
+
 def test_huge_coordinates_are_invalid_points_not_overflows():
     """1e30 is no measurement: dropped and counted like NaN, not squared into inf (float32)."""
     scan = np.array([[5.0, 0, 0], [1e30, 0, 0], [0, 1e9, 0], [0, 3e4, 0]], np.float32)

@@ -244,15 +244,14 @@ class GeometricBackbone:
         """Features (N, D) float32 of a raw scan (N, 3+) ``x y z [intensity]``; zeros for
         points outside [min_range, max_range] or not finite."""
         scan = pc.check_points(scan, path)
+        top = np.inf if self.max_range is None else self.max_range
         try:
-            top = np.inf if self.max_range is None else self.max_range
-            keep = pc.range_mask(scan, self.min_range, top, path)[0]
+            band = pc.range_band(scan, self.min_range, top, path)
         except InputError:  # no valid point: all rows zero
-            keep = np.zeros(len(scan), bool)
-        if not keep.any():
             return np.zeros((len(scan), self.dim), np.float32)
-        xyz = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
-        intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
+        if len(band.xyz) == 0:
+            return np.zeros((len(scan), self.dim), np.float32)
+        keep, xyz, intensity = band.keep, band.xyz, band.intensity()
         grid = pc.voxel_grid(xyz, self.voxel_size)
         voxels = grid.means(xyz)
         # np.take: the same rows as per_voxel[inverse], gathered four times faster.

@@ -506,14 +506,14 @@ class NetBackbone:
             return run_embedding(self.net, scan)
         out = np.zeros((len(scan), self.dim), np.float32)
         try:
-            keep = pc.range_mask(scan, self.grid["min_range"], self.grid["max_range"], path)[0]
+            band = pc.range_band(scan, self.grid["min_range"], self.grid["max_range"], path)
         except InputError:  # no valid point: all rows zero
             return out
-        xyz = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
-        intensity = np.compress(keep, scan[:, 3]) if scan.shape[1] > 3 else None
-        grid = pc.voxel_grid(xyz, self.grid["resolution"])
-        embedding = self.voxel_features(xyz, intensity, grid, grid.means(xyz))[0]
-        out[keep] = np.take(embedding, grid.inverse, axis=0)
+        if len(band.xyz) == 0:
+            return out
+        grid = pc.voxel_grid(band.xyz, self.grid["resolution"])
+        embedding = self.voxel_features(band.xyz, band.intensity(), grid, grid.means(band.xyz))[0]
+        out[band.keep] = np.take(embedding, grid.inverse, axis=0)
         return out
 
     def voxel_features(
