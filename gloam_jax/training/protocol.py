@@ -149,6 +149,11 @@ SPLITS: dict[str, tuple[World, ...]] = {
         World("409", "09", 0, "forest", "hdl64", True, LONG_FRAMES, LONG_METRES),
         World("410", "03", 0, "urban", "hdl64", True, LONG_FRAMES, LONG_METRES),
         World("411", "05", 1200, "suburban", "hdl64", False, LONG_FRAMES, LONG_METRES),
+        # Added for an HDL-32E model (experiments/hdl32_model), which 405 alone could not
+        # choose: the scene families an HDL-32E had not been validated on.
+        World("412", "03", 0, "urban", "hdl32", True, LONG_FRAMES, LONG_METRES),
+        World("413", "07", 0, "suburban", "hdl32", False, LONG_FRAMES, LONG_METRES),
+        World("414", "01", 0, "highway", "hdl32", True, LONG_FRAMES, LONG_METRES),
     ),
     "test_long": (
         World("501", "00", 0, "urban", "hdl64", True, LONG_FRAMES, LONG_METRES),
