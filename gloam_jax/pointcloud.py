@@ -95,10 +95,11 @@ def range_band(
 ) -> RangeBand:
     """The points of a raw scan (N, 3+) between ``min_range`` and ``max_range`` m, as the
     preprocessing and the grid backbones select them; errors as :func:`range_mask`."""
+    scan = np.asarray(scan)
     keep, invalid = range_mask(scan, min_range, max_range, source)
     # np.compress: the rows of scan[keep, :3], selected faster than a boolean index does.
-    xyz = np.compress(keep, np.asarray(scan)[:, :3], axis=0).astype(np.float64)
-    return RangeBand(np.asarray(scan), keep, xyz, invalid)
+    xyz = np.compress(keep, scan[:, :3], axis=0).astype(np.float64)
+    return RangeBand(scan, keep, xyz, invalid)
 
 
 def crop_range(points: np.ndarray, min_range: float, max_range: float) -> np.ndarray:

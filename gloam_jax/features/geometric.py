@@ -284,10 +284,9 @@ class GeometricBackbone:
         voxels (:meth:`shares_grid`). Also the k-NN of the voxel centres it queried (M, k)
         int32, nearest first, k its largest scale (M where fewer), for the covariances to
         reuse."""
-        voxels = centres
-        per_voxel, nearest = self._per_voxel(voxels, grid.counts)
+        per_voxel, nearest = self._per_voxel(centres, grid.counts)
         features = np.concatenate(
-            [per_voxel, grid.means(self._per_point(xyz, intensity, voxels))], axis=1
+            [per_voxel, grid.means(self._per_point(xyz, intensity, centres))], axis=1
         )
         return (features[:, self._keep] if self.drop else features), nearest
 
