@@ -296,20 +296,12 @@ def timed_input(
 
 class VoxelPlacement:
     """Which thread builds the next frame's voxel grid (:meth:`Odometry.voxel_centres`): the
-    prefetch thread while its own work (reading, features) takes less than the registration
+    prefetch thread while its own work (reading, features) took less than the registration
     without the grid, else the registration. On two cores a frame takes about as long as the
-    busier thread; the poses are the same either way. The two are compared as running means
-    (``SMOOTHING``: the newest frame's weight), and the grid changes thread only when the
-    other is the less busy by ``MARGIN``: where they are near equal, a switch every few frames
-    would run two scans' features at once, one slow frame each time
-    (experiments/steady_placement)."""
-
-    SMOOTHING = 0.25
-    MARGIN = 0.1
+    busier thread; the poses are the same either way."""
 
     def __init__(self) -> None:
         self.ahead = True
-        self._means: np.ndarray | None = None  # worker, registration (ms)
 
     def update(self, stage_ms: dict[str, float]) -> None:
         """Decide from a registered frame's ``stage_ms``."""
@@ -317,16 +309,7 @@ class VoxelPlacement:
         registration = sum(
             v for k, v in stage_ms.items() if k not in ("load", "features", "voxels")
         )
-        frame = np.array([worker, registration])
-        if self._means is None:
-            self._means = frame
-        else:
-            self._means += self.SMOOTHING * (frame - self._means)
-        worker, registration = self._means
-        if self.ahead:
-            self.ahead = worker <= (1 + self.MARGIN) * registration
-        else:
-            self.ahead = worker < (1 - self.MARGIN) * registration
+        self.ahead = worker < registration
 
 
 def prefetched(fetch: Callable[[int], Item], ks: range) -> Iterator[Future[Item]]:

@@ -252,38 +252,11 @@ def test_the_voxel_grid_goes_to_the_thread_with_less_to_do():
     gicp = dict.fromkeys(STAGES, 0.0) | {"load": 3.0, "voxels": 28.0, "neighbours": 35.0}
     placement.update(gicp)
     assert placement.ahead
-
-    def frames_until_switch(stage_ms: dict[str, float], most: int = 20) -> int | None:
-        side = placement.ahead
-        for k in range(1, most + 1):
-            placement.update(stage_ms)
-            if placement.ahead != side:
-                return k
-        return None
-
-    # a backbone longer than the registration without the grid: the grid joins the
-    # registration, not on one frame's word but within a few
-    slow = gicp | {"features": 136.0, "neighbours": 65.0, "solve": 19.0}
-    assert frames_until_switch(slow) in range(2, 8)
+    # a backbone longer than the registration without the grid: the grid joins the registration
+    placement.update(gicp | {"features": 136.0, "neighbours": 65.0, "solve": 19.0})
     assert not placement.ahead
-    assert frames_until_switch(gicp | {"features": 20.0}) in range(2, 8)
+    placement.update(gicp | {"features": 20.0})
     assert placement.ahead
-
-
-def test_the_voxel_grid_stays_put_while_the_threads_are_near_equal():
-    # load + features 38 +- 4 ms against a registration of 38 ms: no side is clearly the less
-    # busy, and a switch would put two scans' features on both threads at once
-    base = dict.fromkeys(STAGES, 0.0) | {"load": 2.0, "voxels": 9.0, "neighbours": 38.0}
-    for first in ({"features": 80.0}, {"features": 0.0}):
-        placement = VoxelPlacement()
-        for _ in range(12):  # settle on one side
-            placement.update(base | first)
-        side = placement.ahead
-        sides = []
-        for k in range(40):
-            placement.update(base | {"features": 32.0 if k % 2 else 40.0})
-            sides.append(placement.ahead)
-        assert sides == [side] * 40
 
 
 def test_a_run_records_each_frames_stages_and_their_median_and_p95(sim_sequence, tmp_path):
