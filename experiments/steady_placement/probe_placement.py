@@ -1,43 +1,75 @@
-"""Where gloam_net's voxel grid + features run (VoxelPlacement) and what forcing it does."""
-import sys, json, time
-sys.path.insert(0, "scripts")
-import numpy as np
-import bench_odometry as B
-from gloam_jax import io, pipeline
-from gloam_jax.config import load_config
-from gloam_jax.cli.common import use_compilation_cache
-use_compilation_cache()
-mode, method, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
-orig = pipeline.VoxelPlacement.update
-log = []
-def update(self, stage_ms):
-    orig(self, stage_ms)
-    if mode == "ahead": self.ahead = True
-    if mode == "main": self.ahead = False
-    log.append(self.ahead)
-pipeline.VoxelPlacement.update = update
-_open = pipeline.open_odometry
-box = {}
-def open_odometry(*a, **k):
-    box["setup"] = r = _open(*a, **k); return r
-pipeline.open_odometry = open_odometry
-class C: count = 0
-seq = io.KittiSequence("data/long", "403")
-import gloam_jax.timing as tm
-poses, ms, extra = B.run_ours(seq, n, load_config(f"gloam_jax/configs/{method}.yaml"), None, C())
-print({k: v["median"] for k, v in extra["stage_ms"].items()}); print(mode, method, "ahead share", np.mean(log[20:]), "reg median", round(np.median(ms[20:]),1),
-      "frame", extra["frame_ms"], "wall", round(extra["wall_ms_per_frame"],1), "feat", round(extra.get("median_ms_features", 0),1))
-import numpy as np
-st = B  # noqa
-fm = np.array(extra.get("_frame_ms", []))
+"""Where a method's voxel grid (and grid features) is built, frame by frame, and what each
+placement costs (issue 42). Run from the repository root:
 
-sts = box["setup"].odometry.status
-keys = ["load","features","voxels","deskew","neighbours","covariances","solve","map","other"]
-stage = np.array([[s.stage_ms.get(k, 0.0) for k in keys] for s in sts])
-npts = np.array([s.num_points for s in sts])
-np.savez("/tmp/place_%s_%s.npz" % (mode, method), ms=np.array(ms), ahead=np.array(log), stage=stage, npts=npts)
-ms = np.array(ms); top = np.argsort(ms)[-50:]
-print("top-5% frames: mean ms", ms[top].mean(), "ahead share", np.mean(np.array([True]+log)[top]))
-print("stage means top:", dict(zip(keys, stage[top].mean(0).round(1))))
-print("stage means all:", dict(zip(keys, stage[20:].mean(0).round(1))))
-print("points top/all", npts[top].mean(), npts[20:].mean())
+python experiments/steady_placement/probe_placement.py MODE METHOD FRAMES [OUT.npz]
+
+MODE: ``policy`` (pipeline.VoxelPlacement as it is), ``ahead`` (always on the prefetch
+thread) or ``main`` (always in the registration). val 403 d0 (data/long), run as
+scripts/bench_odometry.py runs it. Prints the share of frames built ahead, the switches,
+and the registration's ms (median / p95) split by where frame f's grid and f+1's were
+built (the decision after frame j sets frame j+2's grid: the prefetch thread starts frame
+j+1's fetch before frame j registers)."""
+
+import sys
+
+import numpy as np
+
+sys.path.insert(0, "scripts")
+import bench_odometry  # noqa: E402
+
+from gloam_jax import io, pipeline  # noqa: E402
+from gloam_jax.cli.common import use_compilation_cache  # noqa: E402
+from gloam_jax.config import load_config  # noqa: E402
+
+STAGES = ("load", "features", "voxels", "deskew", "neighbours", "covariances", "solve", "map",
+          "other")  # fmt: skip
+
+
+def main() -> None:
+    mode, method, n = sys.argv[1], sys.argv[2], int(sys.argv[3])
+    use_compilation_cache()
+    decide, decisions = pipeline.VoxelPlacement.update, []
+
+    def update(self, stage_ms):
+        decide(self, stage_ms)
+        self.ahead = {"ahead": True, "main": False}.get(mode, self.ahead)
+        decisions.append(self.ahead)
+
+    pipeline.VoxelPlacement.update = update
+    pipeline_open, setup_result = pipeline.open_odometry, {}
+
+    def opened(*args, **kwargs):
+        setup_result["value"] = pipeline_open(*args, **kwargs)
+        return setup_result["value"]
+
+    pipeline.open_odometry = opened
+
+    class Counter:
+        count = 0
+
+    config = load_config(f"gloam_jax/configs/{method}.yaml")
+    _, ms, extra = bench_odometry.run_ours(io.KittiSequence("data/long", "403"), n, config,
+                                           None, Counter())  # fmt: skip
+    status = setup_result["value"].odometry.status
+    ms, ahead = np.asarray(ms), np.asarray(decisions)
+    stage = np.array([[s.stage_ms.get(k, 0.0) for k in STAGES] for s in status])
+    print(f"{mode} {method}: ahead {ahead[20:].mean():.2f} of frames, "
+          f"{int(np.sum(ahead[1:] != ahead[:-1]))} switches; frame (loop) median / p95 "
+          f"{extra['frame_ms']['median']:.1f} / {extra['frame_ms']['p95']:.1f} ms")  # fmt: skip
+    for own in (True, False):
+        for beside in (True, False):
+            pair = (ahead[:-2] == own) & (ahead[1:-1] == beside)  # frame k at k - 2
+            f = np.flatnonzero(pair[20:]) + 22  # after 22 frames of compilations
+            if len(f):
+                print(
+                    f"  f's grid {'ahead' if own else 'in registration'}, f+1's "
+                    f"{'ahead' if beside else 'in its registration'}: {len(f)} frames, "
+                    f"registration {np.median(ms[f]):.1f} / {np.percentile(ms[f], 95):.1f} ms; "
+                    f"stage means {dict(zip(STAGES, stage[f].mean(0).round(1), strict=True))}"
+                )
+    if len(sys.argv) > 4:
+        np.savez(sys.argv[4], ms=ms, ahead=ahead, stage=stage)
+
+
+if __name__ == "__main__":
+    main()
