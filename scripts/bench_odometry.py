@@ -4,8 +4,9 @@
     python scripts/bench_odometry.py DATA --sequences 403 --isolate \
         --methods gicp,gicp_da,gicp_ce,gloam,gloam_net,small_gicp,kiss-icp,genz-icp
 
-DATA is a KITTI-layout root (real or from ``gloam simulate``). Every method gets the same raw
-scans, in order, with the same number of threads:
+DATA is a KITTI-layout root (real or from ``gloam simulate``). A method that cannot run (a
+peer not installed, or no ``<method>.yaml`` in ``--configs``) stops it before the first run.
+Every method gets the same raw scans, in order, with the same number of threads:
 
 * ``gicp``, ``gicp_da``, ``gicp_ce``, ``gloam``: this project's frame-to-model odometry with
   ``configs/<method>.yaml``, deskewed with the scans' per-point times (azimuth-derived where
@@ -206,6 +207,22 @@ PEERS = {  # name -> runner (seq, frames, threads)
     "genz-icp": run_genz,
     "genz-icp-kitti": partial(run_genz, preset="kitti"),
 }
+PEER_MODULES = {"small_gicp": "small_gicp", "kiss-icp": "kiss_icp", "genz-icp": "genz_icp",
+                "genz-icp-kitti": "genz_icp"}  # fmt: skip
+
+
+def unrunnable(methods: list[str], configs: Path) -> str | None:
+    """Why one of ``methods`` cannot run, checked before any runs (a sitting takes half an
+    hour): a peer whose package is not installed, or one of ours without a config."""
+    from importlib.util import find_spec
+
+    for method in methods:
+        if method in PEERS:
+            if find_spec(PEER_MODULES[method]) is None:
+                return f"{method}: its package is not installed (pip install -e '.[peers]')"
+        elif not (config := configs / f"{method}.yaml").is_file():
+            return f"{method}: neither a peer nor a config of ours ({config} is missing)"
+    return None
 
 
 def frame_summary(frame_ms: list[float]) -> dict:
@@ -287,6 +304,8 @@ def main() -> None:
         help="run the methods in turn this many times; ratios within each round",
     )  # fmt: skip
     args = parser.parse_args()
+    if (problem := unrunnable(args.methods.split(","), args.configs)) is not None:
+        parser.error(problem)
 
     import jax
 

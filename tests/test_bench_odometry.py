@@ -117,3 +117,19 @@ def test_rounds_take_each_ratio_within_its_own_round(bench_odometry):
     assert "| 9 | gicp | small_gicp | 1.50, 1.50 | 1.50x |" in ratios
     speed = bench_odometry.speed_table(results)
     assert "| 9 | gicp@2 | 0.200 | 0.100 | 90.0 / 135.0 | 1.50x |" in speed
+
+
+def test_a_method_that_cannot_run_is_named_before_any_run(bench_odometry, tmp_path, monkeypatch):
+    """A half-hour sitting stops at the start, not at its last method: a peer whose package is
+    missing, or a method of ours without a config in --configs."""
+    from repo_scripts import ROOT
+
+    assert bench_odometry.PEER_MODULES.keys() == bench_odometry.PEERS.keys()
+    configs = ROOT / "configs"
+    assert bench_odometry.unrunnable(["gicp", "gloam", "small_gicp"], configs) is None
+    monkeypatch.setitem(bench_odometry.PEER_MODULES, "kiss-icp", "no_such_package_here")
+    problem = bench_odometry.unrunnable(["gicp", "kiss-icp"], configs)
+    assert problem == "kiss-icp: its package is not installed (pip install -e '.[peers]')"
+    problem = bench_odometry.unrunnable(["gicp"], tmp_path)  # an empty --configs folder
+    missing = tmp_path / "gicp.yaml"
+    assert problem == f"gicp: neither a peer nor a config of ours ({missing} is missing)"
