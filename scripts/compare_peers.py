@@ -48,9 +48,14 @@ class RawScans:
     def __init__(self, seq: io.KittiSequence) -> None:
         self.seq = seq
         self.times = seq.times
+        # where run_ours opens the drive to choose the model from its first scans
+        self.root, self.sequence = seq.root, seq.sequence
 
     def scan(self, i: int) -> np.ndarray:
         return self.seq.scan(i)
+
+    def scan_path(self, i: int) -> Path:
+        return self.seq.scan_path(i)
 
     def point_times(self, i: int) -> None:
         return None

@@ -1,0 +1,40 @@
+"""scripts/compare_peers.py: our GICP on raw scans, scored and saved."""
+
+import json
+import sys
+
+import numpy as np
+import pytest
+from repo_scripts import import_script
+
+
+@pytest.fixture(scope="module")
+def compare_peers():
+    return import_script("compare_peers")
+
+
+def test_raw_scans_hide_the_point_times(compare_peers, sim_sequence):
+    from gloam_jax import io
+
+    seq = io.KittiSequence(sim_sequence, "00")
+    assert seq.point_times(3) is not None  # the simulator wrote them
+    raw = compare_peers.RawScans(seq)
+    assert raw.point_times(3) is None
+    np.testing.assert_array_equal(raw.scan(3), seq.scan(3))
+    assert (raw.root, raw.sequence, raw.scan_path(3)) == (seq.root, seq.sequence,
+                                                         seq.scan_path(3))  # fmt: skip
+
+
+def test_our_gicp_runs_on_raw_scans_and_is_scored(compare_peers, sim_sequence, tmp_path,
+                                                  monkeypatch):  # fmt: skip
+    out = tmp_path / "peers"
+    argv = f"compare_peers.py {sim_sequence} --sequences 00 --frames 8 --methods gicp --out {out}"
+    monkeypatch.setattr(sys, "argv", argv.split())
+    compare_peers.main()
+    saved = json.loads(out.with_suffix(".json").read_text())
+    scored = saved["results"]["00/gicp"]
+    # 8 frames of a simulated drive: GICP follows it to within a few per cent of the path
+    assert 0 <= scored["t_err"] < 5.0
+    assert scored["median_ms_per_frame"] > 0
+    assert saved["devkit"] is False
+    assert "00" in out.with_suffix(".md").read_text()
