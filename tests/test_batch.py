@@ -296,3 +296,34 @@ def test_window_drift_gradient_matches_finite_differences(data):
 def test_drift_frames_must_not_be_negative():
     with pytest.raises(InputError, match="drift_frames must be >= 0"):
         batch.BatchConfig(drift_frames=-1)
+
+
+def test_unbiased_scoring_gives_no_credit_for_a_window_mean_rotation_error(data):
+    w = data.windows[0]
+    n = w.stop - w.start
+    noise = np.random.default_rng(0).normal(0.0, 2e-3, (n, 3))  # rad a pair, each axis
+
+    def scored(pitch, unbias):
+        gt = io.frame_motions(io.cam_to_lidar_poses(w.gt_cam, w.Tr_cam_velo))
+        turns = geo.so3_exp(jax.numpy.asarray(noise, jax.numpy.float32)
+                            + jax.numpy.stack([0.0, pitch, 0.0]))  # fmt: skip
+        T = jax.numpy.asarray(gt, jax.numpy.float32)
+        T = T.at[:, :3, :3].set(geo.matmul(T[:, :3, :3], turns))
+        return batch.window_errors(T, [w], unbias_rotation=unbias)[0][0]
+
+    x, h = 3e-3, 1e-3
+    plain = float(jax.grad(scored)(x, False))
+    unbiased = float(jax.grad(scored)(x, True))
+    # a constant pitch error drives the plain score; the unbiased one only sees the noise
+    assert abs(plain) > 1.0
+    assert abs(unbiased) < 0.05 * abs(plain)
+    fd = (float(scored(x + h, True)) - float(scored(x - h, True))) / (2 * h)
+    assert abs(fd) < 0.05 * abs(plain)
+    # with the bias taken out, a biased window scores as its unbiased twin
+    assert float(scored(x, True)) == pytest.approx(float(scored(0.0, True)), rel=0.05)
+    assert float(scored(x, False)) > 2 * float(scored(x, True))
+
+
+def test_unbias_rotation_and_drift_frames_exclude_each_other():
+    with pytest.raises(InputError, match="set one of them"):
+        batch.BatchConfig(drift_frames=10, unbias_rotation=True)

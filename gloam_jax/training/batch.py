@@ -75,6 +75,11 @@ class BatchConfig:
     # the LiDAR's y and z axes (pitch, yaw) would add over a path of N frames (window_errors):
     # long segments see a per-pair bias that short windows hardly do. 0: the segments alone.
     drift_frames: int = 0
+    # True: each window's mean per-pair rotation error is taken out of its estimates before
+    # they are scored, so the loss gives no credit for moving it, only for cutting the
+    # spread around it (a bias the training windows share need not be the drives':
+    # experiments/hdl32_map20). Excludes drift_frames, which scores that mean.
+    unbias_rotation: bool = False
     gicp: GICPConfig = field(default_factory=_batch_gicp)
 
     MOVED: ClassVar[dict[str, str]] = {
@@ -92,6 +97,9 @@ class BatchConfig:
             )
         if self.drift_frames < 0:
             raise InputError(None, f"drift_frames must be >= 0, got {self.drift_frames}")
+        if self.drift_frames and self.unbias_rotation:
+            raise InputError(None, "drift_frames scores the mean rotation error that "
+                             "unbias_rotation takes out: set one of them")  # fmt: skip
         object.__setattr__(self, "segment_fractions", tuple(self.segment_fractions))
 
 
@@ -291,11 +299,14 @@ def trajectories(T_rel: Array, windows: list[Window]) -> list[Array]:
 
 
 def window_errors(
-    T_rel: Array, windows: list[Window], drift_frames: int = 0
+    T_rel: Array, windows: list[Window], drift_frames: int = 0, unbias_rotation: bool = False
 ) -> tuple[Array, Array]:
     """Per-window relative errors (W,) each: translation (fraction) and rotation (rad/m),
     the devkit's rule over each window's scaled segments (the training loss's terms). With
-    ``drift_frames`` N > 0 the translation error adds :func:`window_drift` over N frames."""
+    ``drift_frames`` N > 0 the translation error adds :func:`window_drift` over N frames;
+    with ``unbias_rotation`` the windows are scored :func:`without_rotation_bias`."""
+    if unbias_rotation:
+        T_rel = without_rotation_bias(T_rel, windows)
     t_err, r_err = [], []
     for w, T_est in zip(windows, trajectories(T_rel, windows), strict=True):
         t, r = segment_errors(T_est, jnp.asarray(w.gt_cam, T_est.dtype), w.plan)
@@ -312,15 +323,27 @@ def window_drift(T_rel: Array, windows: list[Window], frames: int) -> Array:
     A constant heading error growing by b a frame moves the end of an N-frame path sideways
     by about b N^2 / 2 frame lengths, N / 2 * |b| of its length. Roll (about x, the direction
     of travel) moves it little, so it is left out."""
-    drift = []
+    return jnp.stack([0.5 * frames * safe_norm(rotation_bias(T_rel, w)[1:]) for w in windows])
+
+
+def rotation_bias(T_rel: Array, w: Window) -> Array:
+    """Window ``w``'s mean per-pair rotation error (3,), rad: the mean rotation vector of
+    ``R_gt^T R_est`` over its pairs, about the LiDAR's x, y, z axes."""
+    T_est = T_rel[w.start : w.stop]
+    # The ground truth's motions in the LiDAR frame, as T_rel's (host-side constants).
+    T_gt = frame_motions(cam_to_lidar_poses(w.gt_cam, w.Tr_cam_velo))
+    R_gt_T = jnp.asarray(np.swapaxes(T_gt[:, :3, :3], -1, -2), T_est.dtype)
+    return jnp.mean(geo.so3_log(geo.matmul(R_gt_T, T_est[:, :3, :3])), axis=0)
+
+
+def without_rotation_bias(T_rel: Array, windows: list[Window]) -> Array:
+    """``T_rel`` (B, 4, 4) with each window's pairs turned, in their own frame, by minus its
+    :func:`rotation_bias`: to first order, each window's rotation errors less their mean."""
     for w in windows:
-        T_est = T_rel[w.start : w.stop]
-        # The ground truth's motions in the LiDAR frame, as T_rel's (host-side constants).
-        T_gt = frame_motions(cam_to_lidar_poses(w.gt_cam, w.Tr_cam_velo))
-        R_gt_T = jnp.asarray(np.swapaxes(T_gt[:, :3, :3], -1, -2), T_est.dtype)
-        b = jnp.mean(geo.so3_log(geo.matmul(R_gt_T, T_est[:, :3, :3])), axis=0)
-        drift.append(0.5 * frames * safe_norm(b[1:]))
-    return jnp.stack(drift)
+        T = T_rel[w.start : w.stop]
+        turned = geo.matmul(T[:, :3, :3], geo.so3_exp(-rotation_bias(T_rel, w)))
+        T_rel = T_rel.at[w.start : w.stop, :3, :3].set(turned)
+    return T_rel
 
 
 def window_t_err(
@@ -330,7 +353,7 @@ def window_t_err(
     terms of :func:`loss`. The pairs split over ``mesh`` (see :func:`register_sharded`)."""
     scans = with_head(learned, data.scans, data.head)
     T_rel = register_sharded(learned, scans, data.pairs, config, data.regularizer, mesh)
-    return window_errors(T_rel, data.windows, config.drift_frames)[0]
+    return window_errors(T_rel, data.windows, config.drift_frames, config.unbias_rotation)[0]
 
 
 def loss(
@@ -374,7 +397,8 @@ class Evaluator:
         def run(learned, scans, pairs, head):
             scans = with_head(learned, scans, head)
             T_rel = register_sharded(learned, scans, pairs, config, regularizer, mesh)
-            return (*window_errors(T_rel, windows, config.drift_frames), T_rel[: data.num_pairs])
+            errors = window_errors(T_rel, windows, config.drift_frames, config.unbias_rotation)
+            return (*errors, T_rel[: data.num_pairs])
 
         self._run = jax.jit(run)
 
