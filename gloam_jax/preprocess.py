@@ -212,7 +212,8 @@ def resolve_deskew(policy: str, has_times: bool, distorted_layout: bool) -> tupl
     if distorted_layout:
         return "azimuth", (
             "deskew: auto -> azimuth (KITTI layout without per-point times: raw scans are "
-            "motion-distorted, times taken from each point's azimuth)"
+            "motion-distorted, times taken from each point's azimuth; set preprocess.deskew: "
+            "off for scans deskewed already, which this would distort)"
         )
     return "off", (
         "deskew: auto -> off (no per-point times and not the KITTI layout; set "

@@ -62,7 +62,8 @@ def test_a_span_that_fits_no_convention_is_an_error():
 
 def test_the_policy_follows_the_data():
     assert resolve_deskew("auto", True, False)[0] == "timestamps"
-    assert resolve_deskew("auto", False, True)[0] == "azimuth"  # KITTI layout: distorted
+    used, why = resolve_deskew("auto", False, True)  # KITTI layout: distorted
+    assert used == "azimuth" and "deskew: off" in why  # says how to turn it off
     used, why = resolve_deskew("auto", False, False)
     assert used == "off" and "azimuth" in why  # says how to turn it on
     assert resolve_deskew("azimuth", True, False)[0] == "azimuth"
