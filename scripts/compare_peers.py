@@ -32,14 +32,12 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
-from bench_odometry import _CompileCounter, run_genz, run_kiss, run_ours, run_small_gicp
+from bench_odometry import PEERS, _CompileCounter, run_ours
 from make_tables import commit, window_rte
 
 from gloam_jax import io
 from gloam_jax.config import build_dataclass, load_config, parse_mapping
 from gloam_jax.errors import InputError
-
-PEERS = ("small_gicp", "kiss-icp", "genz-icp", "genz-icp-kitti")
 
 
 class RawScans:
@@ -167,14 +165,8 @@ def main() -> None:
             key = f"{name}/{method}"
             if key in results:  # resume: keep what an earlier run measured
                 continue
-            if method == "small_gicp":
-                out = run_small_gicp(raw, n, args.threads)
-            elif method == "kiss-icp":
-                out = run_kiss(raw, n, args.threads)
-            elif method == "genz-icp":
-                out = run_genz(raw, n, args.threads)
-            elif method == "genz-icp-kitti":
-                out = run_genz(raw, n, args.threads, preset="kitti")
+            if method in PEERS:
+                out = PEERS[method](raw, n, args.threads)
             elif method == "gicp":
                 out = run_ours(raw, n, base, None, counter)
             elif method in configs:
