@@ -49,8 +49,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from make_tables import window_rte
@@ -201,28 +203,39 @@ def _kiss_family(odometry, seq: io.KittiSequence, n: int, deskew: bool, own_time
     return np.stack(poses), ms, {"frame_ms": frame_summary(frame_ms)}
 
 
-PEERS = {  # name -> runner (seq, frames, threads)
-    "small_gicp": run_small_gicp,
-    "kiss-icp": run_kiss,
-    "genz-icp": run_genz,
-    "genz-icp-kitti": partial(run_genz, preset="kitti"),
+class Peer(NamedTuple):
+    """A peer odometry: the module its package installs, and its runner (seq, frames,
+    threads) -> (poses, ms, extra)."""
+
+    module: str
+    run: Callable
+
+
+PEERS = {
+    "small_gicp": Peer("small_gicp", run_small_gicp),
+    "kiss-icp": Peer("kiss_icp", run_kiss),
+    "genz-icp": Peer("genz_icp", run_genz),
+    "genz-icp-kitti": Peer("genz_icp", partial(run_genz, preset="kitti")),
 }
-PEER_MODULES = {"small_gicp": "small_gicp", "kiss-icp": "kiss_icp", "genz-icp": "genz_icp",
-                "genz-icp-kitti": "genz_icp"}  # fmt: skip
+
+
+def missing_peer(methods: list[str]) -> str | None:
+    """Why one of the peers among ``methods`` cannot run: its package is not installed."""
+    from importlib.util import find_spec
+
+    for method in methods:
+        if method in PEERS and find_spec(PEERS[method].module) is None:
+            return f"{method}: its package is not installed (pip install -e '.[peers]')"
+    return None
 
 
 def unrunnable(methods: list[str], configs: Path) -> str | None:
     """Why one of ``methods`` cannot run, checked before any runs (a sitting takes half an
     hour): a peer whose package is not installed, or one of ours without a config."""
-    from importlib.util import find_spec
-
     for method in methods:
-        if method in PEERS:
-            if find_spec(PEER_MODULES[method]) is None:
-                return f"{method}: its package is not installed (pip install -e '.[peers]')"
-        elif not (config := configs / f"{method}.yaml").is_file():
+        if method not in PEERS and not (config := configs / f"{method}.yaml").is_file():
             return f"{method}: neither a peer nor a config of ours ({config} is missing)"
-    return None
+    return missing_peer(methods)
 
 
 def frame_summary(frame_ms: list[float]) -> dict:
@@ -334,7 +347,7 @@ def main() -> None:
                 io.write_atomic(args.out, json.dumps(results, indent=2))
                 continue
             if method in PEERS:
-                poses, ms, extra = PEERS[method](seq, n, args.threads)
+                poses, ms, extra = PEERS[method].run(seq, n, args.threads)
             else:
                 from gloam_jax.config import load_config
 

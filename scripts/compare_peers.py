@@ -32,7 +32,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
-from bench_odometry import PEERS, _CompileCounter, run_ours
+from bench_odometry import PEERS, _CompileCounter, missing_peer, run_ours
 from make_tables import commit, window_rte
 
 from gloam_jax import io
@@ -137,6 +137,14 @@ def main() -> None:
     args = parser.parse_args()
     variants = parse_variants(args.variant)
     methods = [*args.methods.split(","), *variants]
+    # Checked before any run: a sitting over several drives takes hours.
+    if unknown := [m for m in methods if m not in PEERS and m != "gicp" and m not in variants]:
+        parser.error(f"unknown method {unknown[0]!r}: gicp, a peer ({', '.join(PEERS)}) or a "
+                     "--variant name")  # fmt: skip
+    if clash := [v for v in variants if v in PEERS or v == "gicp"]:
+        parser.error(f"--variant {clash[0]!r}: the name of a method; choose another")
+    if (problem := missing_peer(methods)) is not None:
+        parser.error(problem)
 
     import jax
 
@@ -166,13 +174,9 @@ def main() -> None:
             if key in results:  # resume: keep what an earlier run measured
                 continue
             if method in PEERS:
-                out = PEERS[method](raw, n, args.threads)
-            elif method == "gicp":
-                out = run_ours(raw, n, base, None, counter)
-            elif method in configs:
-                out = run_ours(raw, n, configs[method], None, counter)
+                out = PEERS[method].run(raw, n, args.threads)
             else:
-                raise SystemExit(f"unknown method {method!r}")
+                out = run_ours(raw, n, configs.get(method, base), None, counter)
             results[key] = score(seq, *out, devkit=args.devkit)
             print(key, json.dumps(results[key]), flush=True)
             record = {

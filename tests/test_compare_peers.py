@@ -38,3 +38,28 @@ def test_our_gicp_runs_on_raw_scans_and_is_scored(compare_peers, sim_sequence, t
     assert scored["median_ms_per_frame"] > 0
     assert saved["devkit"] is False
     assert "00" in out.with_suffix(".md").read_text()
+
+
+@pytest.mark.parametrize(
+    "methods, variant, message",
+    [
+        ("gicp,smal_gicp", [], "unknown method 'smal_gicp'"),
+        ("gicp,kiss-icp", [], "kiss-icp: its package is not installed"),
+        ("gicp", ["--variant", "small_gicp={max_keyframes: 5}"], "--variant 'small_gicp'"),
+    ],
+)
+def test_a_method_that_cannot_run_stops_before_any_run(compare_peers, sim_sequence, tmp_path,
+                                                       monkeypatch, capsys, methods, variant,
+                                                       message):  # fmt: skip
+    """A sitting over several drives takes hours: a misspelt method, a peer whose package is
+    missing or a variant named like a method is named at the start, not where it comes."""
+    kiss = compare_peers.PEERS["kiss-icp"]
+    monkeypatch.setitem(compare_peers.PEERS, "kiss-icp", kiss._replace(module="no_such_package"))
+    out = tmp_path / "peers"
+    argv = ["compare_peers.py", str(sim_sequence), "--sequences", "00", "--frames", "8",
+            "--methods", methods, *variant, "--out", str(out)]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit):
+        compare_peers.main()
+    assert message in capsys.readouterr().err
+    assert not out.with_suffix(".json").exists()  # nothing ran
