@@ -284,6 +284,16 @@ def test_train_backbone_resumes_to_the_same_weights(tmp_path):
                                                                            "pole"}  # fmt: skip
     result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "b"), "--crop", "300"])
     assert result.exit_code == 2 and "started with other crop" in result.output
+    # A smaller network (experiments/small_net): its shape is in its file.
+    small = [*args, "--widths", "4,8,16", "--embed", "8"]
+    result = CliRunner().invoke(app, [*small, "--out", str(tmp_path / "c")])
+    assert result.exit_code == 0, result.output
+    net, _ = load_net(tmp_path / "c" / "net.npz")
+    assert (net.config.widths, net.config.embed, net.decode.weight.shape) == ((4, 8, 16), 8,
+                                                                              (24, 8))  # fmt: skip
+    for bad in ("8,16", "8,x,16", "8,1,16"):
+        result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "d"), "--widths", bad])
+        assert result.exit_code == 2 and "--widths needs three channel counts" in result.output
 
 
 def test_shipped_network_loads_and_says_how_it_was_trained():

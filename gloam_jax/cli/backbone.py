@@ -23,10 +23,25 @@ from gloam_jax.cli.common import (
     user_errors,
     write_json,
 )
+from gloam_jax.errors import InputError
 
 
 def _ids(text: str) -> tuple[str, ...]:
     return tuple(s.strip() for s in text.split(",") if s.strip())
+
+
+def _shape(widths: str | None, embed: int | None) -> dict:
+    """NetConfig's ``widths`` and ``embed`` where given (a bad --widths is an InputError)."""
+    shape: dict = {} if embed is None else {"embed": embed}
+    if widths is not None:
+        try:
+            shape["widths"] = tuple(int(w) for w in _ids(widths))
+        except ValueError:
+            shape["widths"] = ()
+        if len(shape["widths"]) != 3 or min(shape["widths"]) < 2:
+            raise InputError(None, f"--widths needs three channel counts of at least 2, "
+                                   f"not {widths!r}")  # fmt: skip
+    return shape
 
 
 @app.command(
@@ -65,6 +80,15 @@ def train_backbone(
     intensity_rank: Annotated[
         bool, typer.Option(help="Feed intensity as its rank in the scan (blind to its units).")
     ] = False,
+    widths: Annotated[
+        str | None,
+        typer.Option(
+            help="Channels of the stem, level 0 and level 1, comma-separated (default 8,32,64)."
+        ),
+    ] = None,
+    embed: Annotated[
+        int | None, typer.Option(min=1, help="Channels of the embedding (default 32).")
+    ] = None,
 ) -> None:
     """Train the segmentation network whose per-point embedding is the ``net`` backbone."""
     from gloam_jax.features.net import NetConfig
@@ -73,7 +97,8 @@ def train_backbone(
     cfg = SegmentationConfig(
         data=str(data), train=_ids(train), test=_ids(test), steps=steps, batch=batch, crop=crop,
         learning_rate=learning_rate, eval_every=eval_every, test_every=test_every, seed=seed,
-        net=NetConfig(intensity=intensity, intensity_rank=intensity_rank),
+        net=NetConfig(intensity=intensity, intensity_rank=intensity_rank,
+                      **_shape(widths, embed)),
     )  # fmt: skip
     with progress_bar() as bar:
         _, provenance = train_segmentation(cfg, out, Tasks(bar))
