@@ -92,6 +92,23 @@ def _attentive_pooling(layer, h, xyz, nbr):
     return jax.nn.relu(layer.out(np.sum(attention * fh, axis=1)))
 
 
+@pytest.mark.parametrize("k", [2, 10])
+def test_each_voxel_upsamples_from_its_nearest_level1_point(k):
+    """The nearest sampled voxel read off the level-0 k-NN rows is the level-1 tree's nearest
+    (k = 2: most rows have no sampled neighbour and query the tree; k = 10: a few)."""
+    from gloam_jax.neighbors import KdTree
+
+    xyz = np.random.default_rng(4).uniform(-20, 20, (5000, 3))
+    sub = net_module.sample_level1(len(xyz), 4)
+    tree1 = KdTree(xyz[sub])
+    nbr0 = net_module._knn(KdTree(xyz), xyz, k)
+    want = cKDTree(xyz[sub]).query(xyz, 1)[1]
+    up = net_module.nearest_sampled(nbr0, sub, tree1, xyz)
+    assert up.dtype == np.int32
+    np.testing.assert_array_equal(up, want)
+    np.testing.assert_array_equal(up[sub], np.arange(len(sub)))  # sampled voxels: themselves
+
+
 @pytest.mark.parametrize(
     ("backend", "chunk_bytes"), [("cpu", 1 << 21), ("cpu", 3000), ("gpu", 3000)]
 )

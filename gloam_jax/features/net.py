@@ -271,6 +271,24 @@ def sample_level1(m: int, ratio: int) -> np.ndarray:
     return np.sort(np.random.default_rng(0).choice(m, n1, replace=False)).astype(np.int32)
 
 
+def nearest_sampled(
+    nbr0: np.ndarray, sub: np.ndarray, tree1: KdTree, xyz: np.ndarray
+) -> np.ndarray:
+    """Each voxel's nearest level-1 point (M,) int32, an index into ``sub`` (the sampled
+    voxels, sorted; ``tree1`` holds their points): the first sampled voxel in its k-NN row
+    ``nbr0`` (M, K), nearest first, is the nearest of them all; only rows without one query
+    the tree (with ratio 4 and K = 10, about one row in twenty)."""
+    level1 = np.full(len(xyz), -1, np.int32)
+    level1[sub] = np.arange(len(sub), dtype=np.int32)
+    candidates = level1[nbr0]  # (M, K): -1 where not sampled
+    first = np.argmax(candidates >= 0, axis=1)
+    up = candidates[np.arange(len(xyz)), first]
+    missing = np.flatnonzero(up < 0)
+    if len(missing):
+        up[missing] = _knn(tree1, xyz[missing], 1)[:, 0]
+    return up
+
+
 def build_inputs(
     xyz: np.ndarray,
     intensity: np.ndarray,
@@ -287,7 +305,7 @@ def build_inputs(
     nbr0 = _knn(KdTree(xyz), xyz, config.k) if nbr0 is None else nbr0
     tree1 = KdTree(xyz[sub])
     nbr1 = _knn(tree1, xyz[sub], config.k)
-    up = _knn(tree1, xyz, 1)[:, 0]
+    up = nearest_sampled(nbr0, sub, tree1, xyz)
     columns = [np.linalg.norm(xyz, axis=1) / _RANGE_SCALE, xyz[:, 2] / _HEIGHT_SCALE]
     features = np.stack(columns + [intensity] if config.intensity else columns, 1)
     n1 = -(-size // config.ratio)
