@@ -13,14 +13,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import sys
 import time
 
 import jax
 import numpy as np
-from make_tables import commit
+from make_tables import commit, machine
 
 from gloam_jax.features import get_backbone
 from gloam_jax.io import KittiSequence, write_atomic
@@ -61,7 +59,7 @@ def main() -> None:
         record = {
             "command": "python " + " ".join(sys.argv),
             "commit": commit(),
-            "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+            "machine": machine(),
             "jax_device": jax.devices()[0].device_kind,
             "scans": args.scans,
             "mean_points": float(np.mean(points[1:])),

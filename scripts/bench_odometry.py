@@ -55,7 +55,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
-from make_tables import window_rte
+from make_tables import commit, machine, window_rte
 
 from gloam_jax import io, metrics, timing
 
@@ -219,6 +219,11 @@ PEERS = {
 }
 
 
+def peer_modules(method: str) -> tuple[str, ...]:
+    """The module a peer ``method`` runs (its version goes into the record); () for ours."""
+    return (PEERS[method].module,) if method in PEERS else ()
+
+
 def missing_peer(methods: list[str]) -> str | None:
     """Why one of the peers among ``methods`` cannot run: its package is not installed."""
     from importlib.util import find_spec
@@ -341,8 +346,9 @@ def main() -> None:
             key = f"{name}/{method}" + (f"@{round_}" if round_ > 1 else "")
             if key in results:  # resume: keep what an earlier run measured
                 continue
+            where = {"commit": commit(), "machine": machine(peer_modules(method))}
             if args.isolate:
-                results[key] = isolated(args, name, method)
+                results[key] = isolated(args, name, method) | where
                 print(key, json.dumps(results[key]), flush=True)
                 io.write_atomic(args.out, json.dumps(results, indent=2))
                 continue
@@ -359,6 +365,7 @@ def main() -> None:
                 "median_ms_per_frame": float(np.median(ms)),
                 "frames": n,
                 **extra,
+                **where,
             }
             print(key, json.dumps(results[key]), flush=True)
             io.write_atomic(args.out, json.dumps(results, indent=2))

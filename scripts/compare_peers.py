@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_odometry import PEERS, _CompileCounter, missing_peer, run_ours
-from make_tables import commit, window_rte
+from make_tables import commit, machine, window_rte
 
 from gloam_jax import io
 from gloam_jax.config import build_dataclass, load_config, parse_mapping
@@ -182,6 +182,7 @@ def main() -> None:
             record = {
                 "command": "python " + " ".join(sys.argv),
                 "commit": commit(),
+                "machine": machine(tuple(PEERS[m].module for m in methods if m in PEERS)),
                 "date": datetime.now(UTC).isoformat(timespec="seconds"),
                 "variants": variants,
                 "devkit": args.devkit,

@@ -46,6 +46,7 @@ import dataclasses
 import hashlib
 import json
 import os
+import platform
 import subprocess
 from datetime import UTC, datetime
 from pathlib import Path
@@ -124,6 +125,35 @@ def commit() -> str:
         return os.environ["GLOAM_COMMIT"]
     dirty = subprocess.run(["git", "diff", "--quiet", "HEAD", "--", "scripts", "gloam_jax"])
     return head.stdout.strip() + (" (+ uncommitted changes)" if dirty.returncode else "")
+
+
+def machine(packages: tuple[str, ...] = ()) -> dict:
+    """Where a measurement ran: the CPU's model and core count, and the versions that set the
+    compiled code (timings differ, and so do the last digits of our methods' errors: the same
+    code on the same scans gave `gloam_net` 0.133 % and 0.136 % on two machines,
+    experiments/long_speed); ``packages``: import names whose versions to add (a peer's)."""
+    from importlib.metadata import PackageNotFoundError, packages_distributions, version
+
+    import jax
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = next((line.split(":", 1)[1].strip() for line in f
+                        if line.startswith("model name")), cpu)  # fmt: skip
+    except OSError:  # not Linux: the platform's word
+        pass
+    found = packages_distributions()  # misses a bare extension module (small_gicp's)
+    versions = {}
+    for module in ("jax", "jaxlib", "numpy", *packages):
+        for name in found.get(module) or [module, module.replace("_", "-")]:
+            try:
+                versions[name] = version(name)
+                break
+            except PackageNotFoundError:
+                continue
+    return {"cpu": cpu, "cores": os.cpu_count(), "python": platform.python_version(),
+            "jax_backend": jax.default_backend()} | versions  # fmt: skip
 
 
 def aggregate(values: list[float]) -> dict:

@@ -91,6 +91,14 @@ def test_isolated_runs_report_process_time_and_memory(bench_odometry, sim_sequen
         assert all(v > 50 for v in r["peak_mib"].values())  # a Python process with NumPy
         assert 0 < r["frame_ms"]["median"] <= r["frame_ms"]["p95"]
     assert ours["queries_per_frame"] >= 1 and ours["frames"] == 4
+    # Where each ran: timings (and our methods' last digits) depend on the CPU and versions.
+    from importlib.metadata import version
+
+    for r in (ours, peer):
+        assert r["machine"]["cores"] == os.cpu_count() and r["machine"]["cpu"]
+        assert r["machine"]["jax"] == version("jax") and r["commit"]
+    assert peer["machine"]["small_gicp"] == version("small_gicp")
+    assert "small_gicp" not in ours["machine"]
     rows = [line for line in printed.splitlines() if line.startswith("| 00 |")]
     cells = rows[0].strip("| ").split(" | ")
     ratio = ours["frame_ms"]["median"] / peer["frame_ms"]["median"]

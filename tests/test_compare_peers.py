@@ -37,6 +37,7 @@ def test_our_gicp_runs_on_raw_scans_and_is_scored(compare_peers, sim_sequence, t
     assert 0 <= scored["t_err"] < 5.0
     assert scored["median_ms_per_frame"] > 0
     assert saved["devkit"] is False
+    assert saved["machine"]["cpu"] and saved["machine"]["jax_backend"] == "cpu"
     assert "00" in out.with_suffix(".md").read_text()
 
 
