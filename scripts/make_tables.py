@@ -343,9 +343,11 @@ def write_tables(record: dict, out: Path) -> str:
     (tables.md, and tables.json with the Table III figures added); return the markdown."""
     worlds = record["worlds"]
     head = ["method", *worlds, "mean", "runs"]
+    where = record.get("machine")  # older tables.json files have none
+    on = f" on {where['cpu']} ({where['cores']} cores)" if where else ""
     lines = [
         f"{record['split']} split, t_err (%), mean ± sample std over runs (model files x "
-        f"simulation seeds {record['sim_seeds']}), commit {record['commit']}",
+        f"simulation seeds {record['sim_seeds']}), commit {record['commit']}{on}",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),
@@ -463,13 +465,15 @@ def split_tables(args: argparse.Namespace, models: dict[str, list[Path]]) -> dic
         "sim_seeds": seeds,
         "data": [str(d) for d in args.data],
         "commit": commit(),
+        "machine": machine(),  # the CPU moves the last digits (machine's docstring)
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "summary": summary,
         "runs": runs,
     }
     print(write_tables(record, args.out))
     if testing:  # each file's own score: its mean over the simulation seeds, per method
-        base = {k: record[k] for k in ("split", "worlds", "sim_seeds", "data", "commit", "date")}
+        keys = ("split", "worlds", "sim_seeds", "data", "commit", "machine", "date")
+        base = {k: record[k] for k in keys}
         for f in files:
             for label, (method, fs) in rows.items():
                 if f in fs:

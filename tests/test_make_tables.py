@@ -108,7 +108,7 @@ def test_test_split_scores_once_and_records_provenance(tiny_test_world, tmp_path
     (entry,) = after.provenance["test_scores"]
     assert entry["split"] == "test" and entry["worlds"] == ["301"] and entry["sim_seeds"] == [0]
     assert entry["method"] == "gloam" and entry["data"] == [str(tiny_test_world)]
-    assert entry["commit"] and entry["date"]
+    assert entry["commit"] and entry["date"] and entry["machine"]["cpu"]
     row = json.loads(next(out.glob("GLOAM (m)/*/*/301/table_metrics.json")).read_text())
     assert entry["t_err"]["mean"] == pytest.approx(row["t_err"], abs=1e-12)
     assert np.isfinite(row["t_err"]) and row["t_err"] >= 0
