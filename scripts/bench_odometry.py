@@ -219,9 +219,9 @@ PEERS = {
 }
 
 
-def peer_modules(method: str) -> tuple[str, ...]:
-    """The module a peer ``method`` runs (its version goes into the record); () for ours."""
-    return (PEERS[method].module,) if method in PEERS else ()
+def peer_modules(methods: list[str]) -> tuple[str, ...]:
+    """The modules the peers among ``methods`` run (their versions go into the records)."""
+    return tuple(PEERS[m].module for m in methods if m in PEERS)
 
 
 def missing_peer(methods: list[str]) -> str | None:
@@ -337,6 +337,8 @@ def main() -> None:
     use_compilation_cache()  # as gloam run does
 
     results = json.loads(args.out.read_text()) if args.out.exists() else {}
+    here = commit()  # the code this process loaded; each method's machine record, once
+    machines = {m: machine(peer_modules([m])) for m in args.methods.split(",")}
     for name in args.sequences:
         seq = io.KittiSequence(args.data, name)
         n = len(seq) if args.frames is None else min(args.frames, len(seq))
@@ -346,7 +348,7 @@ def main() -> None:
             key = f"{name}/{method}" + (f"@{round_}" if round_ > 1 else "")
             if key in results:  # resume: keep what an earlier run measured
                 continue
-            where = {"commit": commit(), "machine": machine(peer_modules(method))}
+            where = {"commit": here, "machine": machines[method]}
             if args.isolate:
                 results[key] = isolated(args, name, method) | where
                 print(key, json.dumps(results[key]), flush=True)

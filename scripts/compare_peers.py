@@ -32,7 +32,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
-from bench_odometry import PEERS, _CompileCounter, missing_peer, run_ours
+from bench_odometry import PEERS, _CompileCounter, missing_peer, peer_modules, run_ours
 from make_tables import commit, machine, window_rte
 
 from gloam_jax import io
@@ -182,7 +182,7 @@ def main() -> None:
             record = {
                 "command": "python " + " ".join(sys.argv),
                 "commit": commit(),
-                "machine": machine(tuple(PEERS[m].module for m in methods if m in PEERS)),
+                "machine": machine(peer_modules(methods)),
                 "date": datetime.now(UTC).isoformat(timespec="seconds"),
                 "variants": variants,
                 "devkit": args.devkit,
