@@ -307,6 +307,33 @@ def test_ship_model_chooses_the_seed_lowest_against_gicp_and_records_it(tmp_path
     assert {s.name for s in model.sensors} == {"hdl64"}
     with pytest.raises(InputError, match="no run of world 405"):
         ship.main([str(path), "--label", "GLOAM (a)", "--worlds", "401,405"])
+    # The same draws scored in two tables, s0 moved to another path between them; the written
+    # model runs a network file put beside it, named relative to it.
+    moved = tmp_path / "moved_s0.npz"
+    moved.write_bytes(files[0].read_bytes())
+    first = {"GICP": runs["GICP"][:1], "GLOAM (a)": [seeds[0], seeds[2]]}
+    second = {"GICP": runs["GICP"][1:], "GLOAM (a)": [run(moved, "d1", 1.8, 0.9), seeds[3]]}
+    first, second = (
+        {**tables, "data": ["d0"], "runs": first},
+        {**tables, "data": ["d1"], "runs": second},
+    )
+    paths = [tmp_path / "d0.json", tmp_path / "d1.json"]
+    for table, p in zip((first, second), paths, strict=True):
+        p.write_text(json.dumps(table))
+    network = tmp_path / "network.npz"
+    network.write_bytes(b"")
+    argv = [*map(str, paths), "--label", "GLOAM (a)", "--worlds", "401,403"]
+    ship.main([*argv, "--alias", f"{files[0]}={moved}", "--network", str(network), "--out",
+               str(out)])  # fmt: skip
+    printed = capsys.readouterr().out
+    assert f"{moved}: mean t_err / GICP 0.9500" in printed and f"chosen: {files[1]}" in printed
+    model = load_model(out)
+    assert model.provenance["selection"]["data"] == ["d0", "d1"]
+    assert model.backbone_options["weights"] == str(network)
+    with pytest.raises(InputError, match="more than one table"):
+        ship.main([str(path), *argv])
+    with pytest.raises(InputError, match="--alias takes OLD=NEW"):
+        ship.main([*argv, "--alias", str(moved)])
 
 
 def test_model_default_runs_through_the_guard_and_records_no_file(tiny_test_world, tmp_path):
