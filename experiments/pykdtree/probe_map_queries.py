@@ -40,9 +40,10 @@ tb, tc = tm(lambda: cKDTree(local_map, leafsize=32, balanced_tree=False, compact
 tpb, tp = tm(lambda: KDTree(local_map, leafsize=32))
 print(f"map build: cKDTree {tb:.1f}, pykdtree {tpb:.1f}")
 for k in (1, 5, 10):
-    a, (d1, i1) = tm(lambda: tc.query(src, k=k, distance_upper_bound=1.0, workers=-1))
-    b, (d2, i2) = tm(lambda: tp.query(src, k=k, distance_upper_bound=1.0))
+    a, (d1, i1) = tm(lambda k=k: tc.query(src, k=k, distance_upper_bound=1.0, workers=-1))
+    b, (d2, i2) = tm(lambda k=k: tp.query(src, k=k, distance_upper_bound=1.0))
     print(f"map query k={k}: cKDTree {a:.1f}, pykdtree {b:.1f}, same {(i1 == i2).mean()}")
 a, (_, i1) = tm(lambda: cKDTree(src, leafsize=32, balanced_tree=False).query(src, k=10, workers=-1))
 b, (_, i2) = tm(lambda: KDTree(src, leafsize=32).query(src, k=10))
-print(f"scan's own k=10, build and query: cKDTree {a:.1f}, pykdtree {b:.1f}, same {(i1 == i2).mean()}")
+same = (i1 == i2).mean()
+print(f"scan's own k=10, build and query: cKDTree {a:.1f}, pykdtree {b:.1f}, same {same}")
