@@ -17,6 +17,9 @@ from gloam_jax.training.grad import train_grad
 from gloam_jax.training.head import head_features
 from gloam_jax.training.problem import fit_initial_model, setup
 
+# One worker runs this module (pytest-xdist --dist loadgroup): its start model is made once.
+pytestmark = pytest.mark.xdist_group("finetune")
+
 GRAD = GradConfig(steps=2, eval_every=1, learning_rate=0.01, head_learning_rate=0.01)
 
 

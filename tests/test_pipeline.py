@@ -21,6 +21,9 @@ from gloam_jax.odometry import FrameStatus, OdometryConfig
 from gloam_jax.pipeline import VoxelPlacement, run_dataset, select_frames, unfinished_runs
 from gloam_jax.timing import STAGES
 
+# One worker runs this module (pytest-xdist --dist loadgroup): its reference run is made once.
+pytestmark = pytest.mark.xdist_group("pipeline")
+
 runner = CliRunner()
 FLUSH = ["--flush-every", "4"]
 

@@ -32,6 +32,10 @@ from gloam_jax.training.config import TPEConfig, TrainConfig
 from gloam_jax.training.problem import setup
 from gloam_jax.training.tpe import train_tpe
 
+# One worker runs this module (pytest-xdist --dist loadgroup): its PostgreSQL server and its
+# scan cache are made once.
+pytestmark = pytest.mark.xdist_group("tpe_workers")
+
 
 def _pg_bin(name: str) -> str:
     found = sorted(glob.glob(f"/usr/lib/postgresql/*/bin/{name}")) or [shutil.which(name)]
