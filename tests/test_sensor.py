@@ -20,7 +20,7 @@ from gloam_jax.pipeline import run_sequence
 from gloam_jax.sensor import SensorSignature, first_match, matches, measure
 from gloam_jax.simulate import SENSORS, draw_world, simulate
 
-# One worker runs this module (pytest-xdist --dist loadgroup): its presets (16 simulations)
+# One worker runs this module (pytest-xdist --dist loadgroup): its presets (8 simulations)
 # are made once, not once per worker.
 pytestmark = pytest.mark.xdist_group("sensor")
 
