@@ -311,15 +311,12 @@ def test_ship_model_chooses_the_seed_lowest_against_gicp_and_records_it(tmp_path
     # model runs a network file put beside it, named relative to it.
     moved = tmp_path / "moved_s0.npz"
     moved.write_bytes(files[0].read_bytes())
-    first = {"GICP": runs["GICP"][:1], "GLOAM (a)": [seeds[0], seeds[2]]}
-    second = {"GICP": runs["GICP"][1:], "GLOAM (a)": [run(moved, "d1", 1.8, 0.9), seeds[3]]}
-    first, second = (
-        {**tables, "data": ["d0"], "runs": first},
-        {**tables, "data": ["d1"], "runs": second},
-    )
-    paths = [tmp_path / "d0.json", tmp_path / "d1.json"]
-    for table, p in zip((first, second), paths, strict=True):
-        p.write_text(json.dumps(table))
+    split = {"d0": {"GICP": runs["GICP"][:1], "GLOAM (a)": [seeds[0], seeds[2]]},
+             "d1": {"GICP": runs["GICP"][1:],
+                    "GLOAM (a)": [run(moved, "d1", 1.8, 0.9), seeds[3]]}}  # fmt: skip
+    paths = [tmp_path / f"{draw}.json" for draw in split]
+    for (draw, draw_runs), p in zip(split.items(), paths, strict=True):
+        p.write_text(json.dumps({**tables, "data": [draw], "runs": draw_runs}))
     network = tmp_path / "network.npz"
     network.write_bytes(b"")
     argv = [*map(str, paths), "--label", "GLOAM (a)", "--worlds", "401,403"]
